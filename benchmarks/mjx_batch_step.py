@@ -1,0 +1,73 @@
+"""Bare batched MJX physics of the Digit simulation model: ``jax.vmap(mjx.step)``.
+
+Prints compile time and physics steps per second; ``--json`` prints one JSON object as the
+last line. Also the check for the XLA CPU hang seen at batch 256 (shared/digit/README.md):
+the foundation test runs this script in a subprocess with a timeout.
+
+    python benchmarks/mjx_batch_step.py --batch 256 --steps 100 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--model", default=None, help="MJCF path (default models/scene.xml)")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    if args.batch < 1 or args.steps < 1:
+        ap.error("--batch and --steps must be positive")
+
+    import jax
+    import jax.numpy as jnp
+    import mujoco
+    from mujoco import mjx
+
+    from safewbc_jax import paths
+
+    m = mujoco.MjModel.from_xml_path(str(args.model or paths.scene_xml()))
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, m.key("stand").id)
+    mx = mjx.put_model(m)
+    dx = mjx.put_data(m, d)
+    key = jax.random.PRNGKey(0)
+    noise = 1e-3 * jax.random.normal(key, (args.batch, m.nv))
+    batch = jax.vmap(lambda dq: dx.replace(qvel=dx.qvel + dq))(noise)
+
+    def rollout(data):
+        def body(dd, _):
+            return jax.vmap(mjx.step, in_axes=(None, 0))(mx, dd), None
+        data, _ = jax.lax.scan(body, data, None, length=args.steps)
+        return data
+
+    fn = jax.jit(rollout)
+    t0 = time.perf_counter()
+    compiled = fn.lower(batch).compile()
+    t_compile = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = compiled(batch)
+    jax.block_until_ready(out)
+    t_run = time.perf_counter() - t0
+    res = {
+        "batch": args.batch, "steps": args.steps, "compile_s": round(t_compile, 2),
+        "run_s": round(t_run, 3), "physics_steps_per_s": round(args.batch * args.steps / t_run, 1),
+        "finite": bool(jnp.all(jnp.isfinite(out.qpos))),
+        "min_base_height": float(jnp.min(out.qpos[:, 2])),
+        "x64": bool(jax.config.jax_enable_x64), "backend": jax.default_backend(),
+    }
+    if args.json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            print(f"{k:>22}: {v}")
+    return res
+
+
+if __name__ == "__main__":
+    main()

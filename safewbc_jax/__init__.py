@@ -1,0 +1,1 @@
+"""safewbc-jax: safe whole-body task-space control (A-ECBF inverse-dynamics QP) for Digit."""

@@ -1,0 +1,360 @@
+"""Robot terms of the controller model as pure JAX functions.
+
+The controller model is Digit's floating base plus its 30 hinges (36 DoF), rods left out
+(``models/digit_controller.xml``). Its equations of motion are the paper's eq. (1),
+
+    M(q) q_ddot + C(q, v) v + G(q) = B u + J(q)^T lambda,
+
+with q in MuJoCo's layout (nq = 37: base position, base quaternion, 30 hinge angles) and
+v, q_ddot in its tangent space (nv = 36). ``h(q, v) = C(q, v) v + G(q)``.
+
+Everything here takes a :class:`RobotModel` (a pytree of arrays with its tree structure as
+static metadata) and plain arrays, so it jit-compiles and vmaps; the model's arrays can be
+batched too (for example to sweep a mass).
+
+M and h are written with the body Jacobians: for each body b with mass m_b, centre of
+mass c_b and world inertia I_b,
+
+    M = sum_b m_b Jc_b^T Jc_b + Jw_b^T I_b Jw_b + diag(armature),
+    h = sum_b Jc_b^T m_b (Jc_dot_b v - g) + Jw_b^T (I_b Jw_dot_b v + w_b x I_b w_b),
+
+the virtual-work sum of each body's Newton-Euler equations. The drift terms J_dot v are
+derivatives of J(q) v along the curve q(t) = integrate(q, v t) (forward-mode AD).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from safewbc_jax import spatial
+
+FREE, HINGE, FIXED = 0, 1, 2
+
+
+@partial(jax.tree_util.register_dataclass,
+         data_fields=["body_pos", "body_rot", "body_ipos", "body_irot", "body_mass",
+                      "body_inertia", "jnt_axis", "armature", "gravity", "site_pos",
+                      "site_rot", "B", "gear", "torque_limit", "ancestor_dof"],
+         meta_fields=["body_names", "body_parent", "body_jtype", "body_qadr", "body_dadr",
+                      "site_names", "site_body", "joint_names", "actuator_names",
+                      "actuator_dof", "nq", "nv", "nu"])
+@dataclasses.dataclass(frozen=True)
+class RobotModel:
+    """Kinematic tree and inertias of the controller model (world body excluded).
+
+    Arrays (leaves): per body its frame in the parent at q = 0 (``body_pos``,
+    ``body_rot``), its centre of mass and principal inertia frame (``body_ipos``,
+    ``body_irot``), ``body_mass``, principal ``body_inertia``; ``jnt_axis`` (hinge axis in
+    the body frame); ``armature`` per dof; sites; the actuation matrix ``B`` (nv x nu,
+    joint torques u), ``gear`` and joint ``torque_limit`` (N m) per actuator;
+    ``ancestor_dof[b, k]`` is 1 where dof k moves body b."""
+
+    body_pos: jax.Array
+    body_rot: jax.Array
+    body_ipos: jax.Array
+    body_irot: jax.Array
+    body_mass: jax.Array
+    body_inertia: jax.Array
+    jnt_axis: jax.Array
+    armature: jax.Array
+    gravity: jax.Array
+    site_pos: jax.Array
+    site_rot: jax.Array
+    B: jax.Array
+    gear: jax.Array
+    torque_limit: jax.Array
+    ancestor_dof: jax.Array
+    body_names: tuple
+    body_parent: tuple
+    body_jtype: tuple
+    body_qadr: tuple
+    body_dadr: tuple
+    site_names: tuple
+    site_body: tuple
+    joint_names: tuple
+    actuator_names: tuple
+    actuator_dof: tuple
+    nq: int
+    nv: int
+    nu: int
+
+    def body_id(self, name: str) -> int:
+        return self.body_names.index(name)
+
+    def site_id(self, name: str) -> int:
+        if name not in self.site_names:
+            raise KeyError(f"unknown frame {name!r}; sites are {self.site_names}")
+        return self.site_names.index(name)
+
+    def joint_qadr(self, name: str) -> int:
+        """qpos index of a hinge by joint name."""
+        if name not in self.joint_names:
+            raise KeyError(f"unknown joint {name!r}")
+        return self.body_qadr[self.joint_names.index(name)]
+
+    def joint_dadr(self, name: str) -> int:
+        """qvel index of a hinge by joint name."""
+        if name not in self.joint_names:
+            raise KeyError(f"unknown joint {name!r}")
+        return self.body_dadr[self.joint_names.index(name)]
+
+    @property
+    def total_mass(self):
+        return jnp.sum(self.body_mass)
+
+
+def _mat(quat) -> np.ndarray:
+    import mujoco
+
+    out = np.zeros(9)
+    mujoco.mju_quat2Mat(out, np.asarray(quat, float))
+    return out.reshape(3, 3)
+
+
+def from_mujoco(m, dtype=jnp.float64) -> RobotModel:
+    """Build the JAX model from a compiled MuJoCo model of a floating-base hinge tree."""
+    import mujoco
+
+    nb = m.nbody - 1
+    jtype, qadr, dadr, jnames = [], [], [], []
+    axis = np.zeros((nb, 3))
+    for b in range(1, m.nbody):
+        n = m.body_jntnum[b]
+        if n == 0:
+            jtype.append(FIXED), qadr.append(-1), dadr.append(-1), jnames.append(None)
+            continue
+        if n > 1:
+            raise ValueError(f"body {m.body(b).name!r} has {n} joints; one at most is supported")
+        j = m.body_jntadr[b]
+        t = m.jnt_type[j]
+        if t == mujoco.mjtJoint.mjJNT_FREE:
+            if b != 1 or m.body_parentid[b] != 0:
+                raise ValueError("the free joint must be on the first body, a child of the world")
+            jtype.append(FREE)
+        elif t == mujoco.mjtJoint.mjJNT_HINGE:
+            jtype.append(HINGE)
+            axis[b - 1] = m.jnt_axis[j]
+            if np.linalg.norm(m.jnt_pos[j]) > 0:
+                raise ValueError(f"joint {m.joint(j).name!r} is not at its body's origin")
+        else:
+            raise ValueError(f"joint {m.joint(j).name!r}: only free and hinge joints are supported"
+                             " in the controller model (leave the rods out)")
+        qadr.append(int(m.jnt_qposadr[j])), dadr.append(int(m.jnt_dofadr[j]))
+        jnames.append(m.joint(j).name)
+    if jtype[0] != FREE:
+        raise ValueError("the controller model needs a free joint on its first body")
+    parent = tuple(int(m.body_parentid[b]) - 1 for b in range(1, m.nbody))
+    anc = np.zeros((nb, m.nv))
+    for b in range(nb):
+        c = b
+        while c >= 0:
+            if jtype[c] == FREE:
+                anc[b, dadr[c]:dadr[c] + 6] = 1
+            elif jtype[c] == HINGE:
+                anc[b, dadr[c]] = 1
+            c = parent[c]
+    B = np.zeros((m.nv, m.nu))
+    act_dof = []
+    for a in range(m.nu):
+        if m.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT:
+            raise ValueError(f"actuator {m.actuator(a).name!r} is not a joint actuator")
+        k = int(m.jnt_dofadr[m.actuator_trnid[a, 0]])
+        B[k, a] = 1.0
+        act_dof.append(k)
+    gear = m.actuator_gear[:, 0].copy()
+    torque_limit = gear * np.abs(m.actuator_ctrlrange).max(axis=1)
+    f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
+    return RobotModel(
+        body_pos=f(m.body_pos[1:]), body_rot=f(np.stack([_mat(q) for q in m.body_quat[1:]])),
+        body_ipos=f(m.body_ipos[1:]), body_irot=f(np.stack([_mat(q) for q in m.body_iquat[1:]])),
+        body_mass=f(m.body_mass[1:]), body_inertia=f(m.body_inertia[1:]), jnt_axis=f(axis),
+        armature=f(m.dof_armature), gravity=f(m.opt.gravity),
+        site_pos=f(m.site_pos), site_rot=f(np.stack([_mat(q) for q in m.site_quat])),
+        B=f(B), gear=f(gear), torque_limit=f(torque_limit), ancestor_dof=f(anc),
+        body_names=tuple(m.body(b).name for b in range(1, m.nbody)), body_parent=parent,
+        body_jtype=tuple(jtype), body_qadr=tuple(qadr), body_dadr=tuple(dadr),
+        site_names=tuple(m.site(s).name for s in range(m.nsite)),
+        site_body=tuple(int(m.site_bodyid[s]) - 1 for s in range(m.nsite)),
+        joint_names=tuple(jnames), actuator_names=tuple(m.actuator(a).name for a in range(m.nu)),
+        actuator_dof=tuple(act_dof), nq=int(m.nq), nv=int(m.nv), nu=int(m.nu))
+
+
+def load_robot(path=None, dtype=jnp.float64) -> RobotModel:
+    """The controller model of Digit (``models/digit_controller.xml`` by default)."""
+    import mujoco
+
+    from safewbc_jax import paths
+
+    return from_mujoco(mujoco.MjModel.from_xml_path(str(path or paths.controller_xml())), dtype)
+
+
+# --------------------------------------------------------------------------------------
+# Kinematics
+# --------------------------------------------------------------------------------------
+
+def forward_kinematics(model: RobotModel, q):
+    """World position and rotation of every body frame: (xpos [nb, 3], xrot [nb, 3, 3])."""
+    pos, rot = [], []
+    for b in range(len(model.body_names)):
+        t, p = model.body_jtype[b], model.body_parent[b]
+        if t == FREE:
+            pos.append(q[0:3])
+            rot.append(spatial.quat_to_mat(q[3:7]))
+            continue
+        ppos = pos[p] if p >= 0 else jnp.zeros(3, q.dtype)
+        prot = rot[p] if p >= 0 else jnp.eye(3, dtype=q.dtype)
+        r = prot @ model.body_rot[b]
+        if t == HINGE:
+            r = r @ spatial.axis_angle_mat(model.jnt_axis[b], q[model.body_qadr[b]])
+        pos.append(ppos + prot @ model.body_pos[b])
+        rot.append(r)
+    return jnp.stack(pos), jnp.stack(rot)
+
+
+def _dof_motion(model: RobotModel, xpos, xrot):
+    """Per dof: world rotation axis w_k (zero for translations), anchor point o_k, and
+    translation direction t_k (zero for rotations). A point x of a body moved by dof k
+    gets velocity w_k x (x - o_k) + t_k per unit of v_k."""
+    w = jnp.zeros((model.nv, 3), xpos.dtype)
+    o = jnp.zeros((model.nv, 3), xpos.dtype)
+    t = jnp.zeros((model.nv, 3), xpos.dtype)
+    for b, jt in enumerate(model.body_jtype):
+        k = model.body_dadr[b]
+        if jt == FREE:
+            t = t.at[k:k + 3].set(jnp.eye(3, dtype=xpos.dtype))
+            w = w.at[k + 3:k + 6].set(xrot[b].T)  # body-frame angular velocity
+            o = o.at[k + 3:k + 6].set(jnp.broadcast_to(xpos[b], (3, 3)))
+        elif jt == HINGE:
+            w = w.at[k].set(xrot[b] @ model.jnt_axis[b])
+            o = o.at[k].set(xpos[b])
+    return w, o, t
+
+
+def point_jacobians(model: RobotModel, xpos, xrot, bodies, points):
+    """Linear and angular Jacobians (3 x nv each) of world points rigidly attached to the
+    given bodies: arrays [n, 3, nv]."""
+    w, o, t = _dof_motion(model, xpos, xrot)
+    mask = model.ancestor_dof[jnp.asarray(bodies)]  # [n, nv]
+    lin = jnp.cross(w[None], points[:, None, :] - o[None]) + t[None]  # [n, nv, 3]
+    jp = jnp.swapaxes(lin * mask[..., None], 1, 2)
+    jr = jnp.swapaxes(w[None] * mask[..., None], 1, 2)
+    return jp, jr
+
+
+def body_com(model: RobotModel, xpos, xrot):
+    """World centre of mass of every body and the rotation of its principal axes."""
+    com = xpos + jnp.einsum("bij,bj->bi", xrot, model.body_ipos)
+    irot = xrot @ model.body_irot
+    return com, irot
+
+
+def _com_jacobians(model: RobotModel, q):
+    xpos, xrot = forward_kinematics(model, q)
+    com, irot = body_com(model, xpos, xrot)
+    jp, jr = point_jacobians(model, xpos, xrot, np.arange(len(model.body_names)), com)
+    return jp, jr, irot
+
+
+def mass_matrix(model: RobotModel, q):
+    """M(q), nv x nv, armature (reflected rotor inertia) on the diagonal."""
+    jp, jr, irot = _com_jacobians(model, q)
+    iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
+    m = jnp.einsum("b,bin,bim->nm", model.body_mass, jp, jp)
+    m = m + jnp.einsum("bin,bij,bjm->nm", jr, iworld, jr)
+    return m + jnp.diag(model.armature)
+
+
+def bias_forces(model: RobotModel, q, v):
+    """h(q, v) = C(q, v) v + G(q): Coriolis, centrifugal and gravity forces (nv)."""
+    def jv(qq):
+        jp, jr, _ = _com_jacobians(model, qq)
+        return jp @ v, jr @ v
+
+    jp, jr, irot = _com_jacobians(model, q)
+    vel, omega = jp @ v, jr @ v
+    acc, alpha = spatial.derivative_along(jv, q, v)
+    iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
+    force = model.body_mass[:, None] * (acc - model.gravity[None])
+    iw = jnp.einsum("bij,bj->bi", iworld, omega)
+    torque = jnp.einsum("bij,bj->bi", iworld, alpha) + jnp.cross(omega, iw)
+    del vel
+    return jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
+
+
+def actuation_matrix(model: RobotModel):
+    """B (nv x nu): joint torques u of the 20 motors to generalized forces."""
+    return model.B
+
+
+# --------------------------------------------------------------------------------------
+# Frames, CoM, torso orientation
+# --------------------------------------------------------------------------------------
+
+def frame_pose(model: RobotModel, q, frame: str):
+    """World position and rotation matrix of a named site (e.g. ``left-sole``)."""
+    s = model.site_id(frame)
+    xpos, xrot = forward_kinematics(model, q)
+    b = model.site_body[s]
+    return xpos[b] + xrot[b] @ model.site_pos[s], xrot[b] @ model.site_rot[s]
+
+
+def frame_jacobian(model: RobotModel, q, frame: str):
+    """6D Jacobian of a site, rows [linear velocity of its origin; angular velocity], both in
+    the world frame (6 x nv)."""
+    s = model.site_id(frame)
+    xpos, xrot = forward_kinematics(model, q)
+    b = model.site_body[s]
+    p = xpos[b] + xrot[b] @ model.site_pos[s]
+    jp, jr = point_jacobians(model, xpos, xrot, np.array([b]), p[None])
+    return jnp.concatenate([jp[0], jr[0]], axis=0)
+
+
+def frame_drift(model: RobotModel, q, v, frame: str):
+    """J_dot v of the 6D site Jacobian: [linear acceleration bias; angular]."""
+    return spatial.derivative_along(lambda qq: frame_jacobian(model, qq, frame) @ v, q, v)
+
+
+def com_position(model: RobotModel, q):
+    """Whole-body centre of mass (world)."""
+    xpos, xrot = forward_kinematics(model, q)
+    com, _ = body_com(model, xpos, xrot)
+    return model.body_mass @ com / jnp.sum(model.body_mass)
+
+
+def com_jacobian(model: RobotModel, q):
+    """3 x nv Jacobian of the centre of mass."""
+    jp, _, _ = _com_jacobians(model, q)
+    return jnp.einsum("b,bin->in", model.body_mass, jp) / jnp.sum(model.body_mass)
+
+
+def com_drift(model: RobotModel, q, v):
+    """J_com_dot v."""
+    return spatial.derivative_along(lambda qq: com_jacobian(model, qq) @ v, q, v)
+
+
+def torso_euler(model: RobotModel, q):
+    """Torso (base) orientation as Euler ZYX angles [roll, pitch, yaw]."""
+    return spatial.euler_zyx(spatial.quat_to_mat(q[3:7]))
+
+
+def torso_euler_jacobian(model: RobotModel, q):
+    """3 x nv Jacobian of :func:`torso_euler` (by forward-mode AD)."""
+    return spatial.tangent_jacobian(lambda qq: torso_euler(model, qq), q, model.nv)
+
+
+def torso_euler_drift(model: RobotModel, q, v):
+    """J_dot v of the torso Euler angles: their second derivative along v."""
+    return spatial.second_derivative_along(lambda qq: torso_euler(model, qq), q, v)
+
+
+def frame_position_in(model: RobotModel, q, frame: str, reference: str):
+    """Position of ``frame`` expressed in the frame ``reference`` (e.g. a fist in the torso
+    base frame, as the paper's arm barrier uses)."""
+    p, _ = frame_pose(model, q, frame)
+    p0, r0 = frame_pose(model, q, reference)
+    return r0.T @ (p - p0)

@@ -1,0 +1,113 @@
+"""Rotations and the configuration manifold of a floating-base robot, as pure JAX functions.
+
+Conventions are MuJoCo's: quaternions (w, x, y, z); the free joint's qpos is
+[position (world), orientation quaternion] and its qvel is [linear velocity of the body
+origin (world frame), angular velocity (body frame)]; hinge qpos and qvel are scalars.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def skew(w):
+    """Cross-product matrix: skew(w) @ x == cross(w, x)."""
+    return jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def quat_to_mat(q):
+    """Rotation matrix of a (not necessarily unit) quaternion (w, x, y, z)."""
+    q = q / jnp.linalg.norm(q)
+    w, x, y, z = q
+    return jnp.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quat_mul(a, b):
+    """Hamilton product a * b."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return jnp.array([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ])
+
+
+def quat_exp(w):
+    """Unit quaternion of the rotation vector w (axis * angle).
+
+    Written in the squared angle so that it, and its derivatives of any order, are smooth
+    at w = 0 (the tangent Jacobians below differentiate it exactly there)."""
+    s = w @ w
+    small = s < 1e-6
+    s_safe = jnp.where(small, 1.0, s)
+    theta = jnp.sqrt(s_safe)
+    c = jnp.where(small, 1.0 - s / 8.0 + s * s / 384.0, jnp.cos(0.5 * theta))
+    k = jnp.where(small, 0.5 - s / 48.0 + s * s / 3840.0, jnp.sin(0.5 * theta) / theta)
+    return jnp.concatenate([c[None], k * w])
+
+
+def axis_angle_mat(axis, angle):
+    """Rotation by ``angle`` about the unit vector ``axis`` (Rodrigues)."""
+    k = skew(axis)
+    return jnp.eye(3) + jnp.sin(angle) * k + (1.0 - jnp.cos(angle)) * (k @ k)
+
+
+def euler_zyx(r):
+    """Euler ZYX angles of a rotation matrix, r = Rz(yaw) Ry(pitch) Rx(roll).
+
+    Returned in the order [roll, pitch, yaw] (rotation about x, y, z), so that index 1 is
+    the pitch of the paper's bowing reference."""
+    roll = jnp.arctan2(r[2, 1], r[2, 2])
+    pitch = -jnp.arcsin(jnp.clip(r[2, 0], -1.0, 1.0))
+    yaw = jnp.arctan2(r[1, 0], r[0, 0])
+    return jnp.stack([roll, pitch, yaw])
+
+
+def vee(s):
+    """Inverse of skew for a (nearly) skew-symmetric matrix."""
+    return 0.5 * jnp.array([s[2, 1] - s[1, 2], s[0, 2] - s[2, 0], s[1, 0] - s[0, 1]])
+
+
+def integrate(q, v, dt=1.0):
+    """Configuration reached from q by holding the generalized velocity v for dt.
+
+    q = [p (3), quat (4), joints], v = [p_dot (3, world), omega (3, body), joint rates]:
+    the same rule as MuJoCo's ``mj_integratePos``. Along t -> integrate(q, v, t) the
+    generalized velocity stays v, i.e. the generalized acceleration is zero; this is what
+    makes the drift terms below second derivatives along that curve."""
+    pos = q[:3] + dt * v[:3]
+    quat = quat_mul(q[3:7], quat_exp(dt * v[3:6]))
+    return jnp.concatenate([pos, quat, q[7:] + dt * v[6:]])
+
+
+def tangent_jacobian(f, q, nv):
+    """Jacobian of f(q) with respect to the generalized velocity: d f(integrate(q, d)) / d d
+    at d = 0. For a position-like output y(q) this is J_y(q), with y_dot = J_y v."""
+    return jax.jacfwd(lambda d: f(integrate(q, d)))(jnp.zeros(nv, q.dtype))
+
+
+def second_derivative_along(f, q, v):
+    """d^2/dt^2 f(integrate(q, v, t)) at t = 0: the drift J_y_dot v of an output y = f(q),
+    the second directional derivative along v (forward mode, twice)."""
+    def g(t):
+        return f(integrate(q, v, t))
+
+    def dg(t):
+        return jax.jvp(g, (t,), (jnp.ones_like(t),))[1]
+
+    t0 = jnp.zeros((), q.dtype)
+    return jax.jvp(dg, (t0,), (jnp.ones_like(t0),))[1]
+
+
+def derivative_along(f, q, v):
+    """d/dt f(integrate(q, v, t)) at t = 0. With f(q) = J(q) v this is J_dot v for any
+    Jacobian, angular ones included."""
+    t0 = jnp.zeros((), q.dtype)
+    return jax.jvp(lambda t: f(integrate(q, v, t)), (t0,), (jnp.ones_like(t0),))[1]
