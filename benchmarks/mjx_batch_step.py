@@ -19,17 +19,23 @@ def main(argv=None) -> dict:
     ap.add_argument("--batch", type=int, default=256)
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--model", default=None, help="MJCF path (default models/scene.xml)")
+    ap.add_argument("--dtype", choices=("float64", "float32"), default="float64",
+                    help="float64 is the CPU default of this project; float32 for accelerators")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     if args.batch < 1 or args.steps < 1:
         ap.error("--batch and --steps must be positive")
 
     import jax
+
+    jax.config.update("jax_enable_x64", args.dtype == "float64")
     import jax.numpy as jnp
     import mujoco
-    from mujoco import mjx
 
     from safewbc_jax import paths
+    from safewbc_jax.mjx_import import import_mjx
+
+    mjx = import_mjx()
 
     m = mujoco.MjModel.from_xml_path(str(args.model or paths.scene_xml()))
     d = mujoco.MjData(m)
@@ -40,10 +46,14 @@ def main(argv=None) -> dict:
     noise = 1e-3 * jax.random.normal(key, (args.batch, m.nv))
     batch = jax.vmap(lambda dq: dx.replace(qvel=dx.qvel + dq))(noise)
 
+    step = jax.vmap(mjx.step, in_axes=(None, 0))
+
     def rollout(data):
-        def body(dd, _):
-            return jax.vmap(mjx.step, in_axes=(None, 0))(mx, dd), None
-        data, _ = jax.lax.scan(body, data, None, length=args.steps)
+        # One step outside the scan: under x64 MJX returns int64 contact indices where
+        # put_data made int32 ones, and a scan carry must keep its types.
+        data = step(mx, data)
+        data, _ = jax.lax.scan(lambda dd, _: (step(mx, dd), None), data, None,
+                               length=args.steps - 1)
         return data
 
     fn = jax.jit(rollout)

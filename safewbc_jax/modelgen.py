@@ -149,7 +149,23 @@ def _geoms_xml(params: dict, body: dict, sim: bool, ind: str) -> list[str]:
     return lines
 
 
-def _body_xml(params: dict, body: dict, children: dict, sim: bool, depth: int) -> list[str]:
+def _chain_sites(params: dict, rod_tips: dict | None) -> dict[str, list[tuple[str, np.ndarray]]]:
+    """Sites that mark the closed chains: ``<rod>-anchor`` (anchor_in_body1 on body1),
+    ``<rod>-ball`` (the rod's ball-joint centre, on the rod's parent) and, in the simulation
+    model, ``<rod>-tip`` (the rod point that meets the anchor)."""
+    bodies = {b["name"]: b for b in params["bodies"]}
+    out: dict[str, list] = {}
+    for lc in params["loop_closures"]:
+        rod = bodies[lc["body2"]]
+        out.setdefault(lc["body1"], []).append((f'{lc["name"]}-anchor', lc["anchor_in_body1"]))
+        out.setdefault(rod["parent"], []).append((f'{lc["name"]}-ball', rod["pos"]))
+        if rod_tips is not None:
+            out.setdefault(rod["name"], []).append((f'{lc["name"]}-tip', rod_tips[lc["name"]]))
+    return out
+
+
+def _body_xml(params: dict, body: dict, children: dict, sim: bool, depth: int,
+              sites: dict) -> list[str]:
     ind = "  " * depth
     name = body["name"]
     pos = body["pos"] if body["parent"] is not None else [0.0, 0.0, 1.0]
@@ -182,15 +198,18 @@ def _body_xml(params: dict, body: dict, children: dict, sim: bool, depth: int) -
     if name.endswith("-hand"):
         side = name.rsplit("-", 1)[0]
         lines.append(f'{ind2}<site name="{side}-fist" pos="0 0 0" size="0.015"/>')
+    for sname, spos in sites.get(name, []):
+        lines.append(f'{ind2}<site name="{sname}" pos="{_f(spos)}" size="0.005" group="4"/>')
     for child in children.get(name, []):
         if _is_rod(child) and not sim:
             continue
-        lines += _body_xml(params, child, children, sim, depth + 1)
+        lines += _body_xml(params, child, children, sim, depth + 1, sites)
     lines.append(f"{ind}</body>")
     return lines
 
 
-def model_xml(params: dict, sim: bool, keyframe: dict | None = None) -> str:
+def model_xml(params: dict, sim: bool, keyframe: dict | None = None,
+              rod_tips: dict | None = None) -> str:
     """MJCF text of the simulation model (``sim=True``) or the controller's tree."""
     children: dict[str, list] = {}
     for b in params["bodies"]:
@@ -216,7 +235,8 @@ def model_xml(params: dict, sim: bool, keyframe: dict | None = None) -> str:
             'condim="3" friction="1 0.02 0.0001"/></default>',
             "  </default>",
             "  <worldbody>"]
-    out += _body_xml(params, root, children, sim, 2)
+    out += _body_xml(params, root, children, sim, 2,
+                     _chain_sites(params, rod_tips if sim else None))
     out.append("  </worldbody>")
     if sim:
         out.append("  <equality>")
@@ -400,7 +420,7 @@ def solve_stand(params: dict, tol: float = 1e-13, max_iter: int = 200) -> dict:
         target = r0.T @ (pa - ds.xpos[rod])
         adr = ms.jnt_qposadr[jnt]
         qs[adr:adr + 4] = _quat_from_two_vectors(anchor2[lc["name"]], target)
-    return {"sim_qpos": qs, "ctrl_qpos": qc}
+    return {"sim_qpos": qs, "ctrl_qpos": qc, "rod_tips": anchor2}
 
 
 def write_models(params: dict | None = None, out_dir: Path = MODELS) -> dict:
@@ -408,7 +428,8 @@ def write_models(params: dict | None = None, out_dir: Path = MODELS) -> dict:
     params = params or load_params()
     stand = solve_stand(params)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "digit.xml").write_text(model_xml(params, True, {"qpos": stand["sim_qpos"]}))
+    (out_dir / "digit.xml").write_text(
+        model_xml(params, True, {"qpos": stand["sim_qpos"]}, stand["rod_tips"]))
     (out_dir / "digit_controller.xml").write_text(
         model_xml(params, False, {"qpos": stand["ctrl_qpos"]}))
     (out_dir / "scene.xml").write_text(SCENE_XML)

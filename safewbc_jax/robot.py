@@ -39,10 +39,11 @@ FREE, HINGE, FIXED = 0, 1, 2
 @partial(jax.tree_util.register_dataclass,
          data_fields=["body_pos", "body_rot", "body_ipos", "body_irot", "body_mass",
                       "body_inertia", "jnt_axis", "armature", "gravity", "site_pos",
-                      "site_rot", "B", "gear", "torque_limit", "ancestor_dof"],
+                      "site_rot", "B", "gear", "torque_limit", "ancestor_dof", "rod_length"],
          meta_fields=["body_names", "body_parent", "body_jtype", "body_qadr", "body_dadr",
                       "site_names", "site_body", "joint_names", "actuator_names",
-                      "actuator_dof", "nq", "nv", "nu"])
+                      "actuator_dof", "rod_names", "rod_sites", "spring_dofs", "nq", "nv",
+                     "nu"])
 @dataclasses.dataclass(frozen=True)
 class RobotModel:
     """Kinematic tree and inertias of the controller model (world body excluded).
@@ -52,7 +53,12 @@ class RobotModel:
     ``body_irot``), ``body_mass``, principal ``body_inertia``; ``jnt_axis`` (hinge axis in
     the body frame); ``armature`` per dof; sites; the actuation matrix ``B`` (nv x nu,
     joint torques u), ``gear`` and joint ``torque_limit`` (N m) per actuator;
-    ``ancestor_dof[b, k]`` is 1 where dof k moves body b."""
+    ``ancestor_dof[b, k]`` is 1 where dof k moves body b.
+
+    Closed chains (the paper's n_kc): each rod left out of the tree is the pair of sites
+    ``<rod>-anchor`` / ``<rod>-ball`` (``rod_sites``) held ``rod_length`` apart (their
+    distance in the zero configuration, where every published loop closes); each spring
+    joint (``spring_dofs``) is held at 0."""
 
     body_pos: jax.Array
     body_rot: jax.Array
@@ -69,6 +75,7 @@ class RobotModel:
     gear: jax.Array
     torque_limit: jax.Array
     ancestor_dof: jax.Array
+    rod_length: jax.Array
     body_names: tuple
     body_parent: tuple
     body_jtype: tuple
@@ -79,6 +86,9 @@ class RobotModel:
     joint_names: tuple
     actuator_names: tuple
     actuator_dof: tuple
+    rod_names: tuple
+    rod_sites: tuple
+    spring_dofs: tuple
     nq: int
     nv: int
     nu: int
@@ -116,8 +126,14 @@ def _mat(quat) -> np.ndarray:
     return out.reshape(3, 3)
 
 
-def from_mujoco(m, dtype=jnp.float64) -> RobotModel:
-    """Build the JAX model from a compiled MuJoCo model of a floating-base hinge tree."""
+SPRING_SUFFIXES = ("-shin", "-heel-spring")
+
+
+def from_mujoco(m, dtype=jnp.float64, spring_suffixes=SPRING_SUFFIXES) -> RobotModel:
+    """Build the JAX model from a compiled MuJoCo model of a floating-base hinge tree.
+
+    Rods are found as site pairs ``<rod>-anchor`` / ``<rod>-ball``; spring joints by the
+    name suffixes ``spring_suffixes``."""
     import mujoco
 
     nb = m.nbody - 1
@@ -168,6 +184,20 @@ def from_mujoco(m, dtype=jnp.float64) -> RobotModel:
         act_dof.append(k)
     gear = m.actuator_gear[:, 0].copy()
     torque_limit = gear * np.abs(m.actuator_ctrlrange).max(axis=1)
+    site_names = [m.site(i).name for i in range(m.nsite)]
+    rods = [n[:-len("-anchor")] for n in site_names if n.endswith("-anchor")]
+    rods = sorted(rods, key=lambda r: (not r.startswith("left"), site_names.index(r + "-anchor")))
+    rod_sites = []
+    for r in rods:
+        if r + "-ball" not in site_names:
+            raise ValueError(f"site {r}-anchor has no matching {r}-ball")
+        rod_sites.append((site_names.index(r + "-anchor"), site_names.index(r + "-ball")))
+    d0 = mujoco.MjData(m)
+    d0.qpos[:] = m.qpos0
+    mujoco.mj_kinematics(m, d0)
+    rod_length = np.array([np.linalg.norm(d0.site_xpos[a] - d0.site_xpos[b]) for a, b in rod_sites])
+    springs = tuple(dadr[i] for i, n in enumerate(jnames)
+                    if n is not None and n.endswith(tuple(spring_suffixes)))
     f = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     return RobotModel(
         body_pos=f(m.body_pos[1:]), body_rot=f(np.stack([_mat(q) for q in m.body_quat[1:]])),
@@ -176,9 +206,11 @@ def from_mujoco(m, dtype=jnp.float64) -> RobotModel:
         armature=f(m.dof_armature), gravity=f(m.opt.gravity),
         site_pos=f(m.site_pos), site_rot=f(np.stack([_mat(q) for q in m.site_quat])),
         B=f(B), gear=f(gear), torque_limit=f(torque_limit), ancestor_dof=f(anc),
+        rod_length=f(rod_length), rod_names=tuple(rods), rod_sites=tuple(rod_sites),
+        spring_dofs=springs,
         body_names=tuple(m.body(b).name for b in range(1, m.nbody)), body_parent=parent,
         body_jtype=tuple(jtype), body_qadr=tuple(qadr), body_dadr=tuple(dadr),
-        site_names=tuple(m.site(s).name for s in range(m.nsite)),
+        site_names=tuple(site_names),
         site_body=tuple(int(m.site_bodyid[s]) - 1 for s in range(m.nsite)),
         joint_names=tuple(jnames), actuator_names=tuple(m.actuator(a).name for a in range(m.nu)),
         actuator_dof=tuple(act_dof), nq=int(m.nq), nv=int(m.nv), nu=int(m.nu))

@@ -1,0 +1,56 @@
+"""Facts about the two Digit models at the ``stand`` keyframe (``safewbc model-info``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def model_info() -> dict:
+    """Sizes, masses, loop residual and foot heights at ``stand``, torque limits."""
+    import mujoco
+
+    from safewbc_jax import paths
+
+    ms = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
+    mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
+    d = mujoco.MjData(ms)
+    mujoco.mj_resetDataKeyframe(ms, d, ms.key("stand").id)
+    mujoco.mj_forward(ms, d)
+    return {
+        "sim_nq": int(ms.nq), "sim_nv": int(ms.nv), "sim_nbody": int(ms.nbody - 1),
+        "ctrl_nq": int(mc.nq), "ctrl_nv": int(mc.nv), "nu": int(ms.nu),
+        "mass_kg": float(ms.body_mass.sum()), "ctrl_mass_kg": float(mc.body_mass.sum()),
+        "loop_residual_m": sim_loop_residual(ms, d),
+        "foot_height_m": [float(d.site_xpos[ms.site(f"{s}-sole").id][2]) for s in ("left", "right")],
+        "com_height_m": float(d.subtree_com[ms.body("base").id][2]),
+        "timestep_s": float(ms.opt.timestep),
+        "torque_limit_Nm": {ms.actuator(a).name: float(ms.actuator_gear[a, 0] * ms.actuator_ctrlrange[a, 1])
+                            for a in range(ms.nu)},
+    }
+
+
+def sim_loop_residual(ms, d) -> float:
+    """Largest distance (m) between a rod's tip and the anchor it should meet."""
+    res = 0.0
+    for s in range(ms.nsite):
+        name = ms.site(s).name
+        if name.endswith("-tip"):
+            a = ms.site(name[:-4] + "-anchor").id
+            res = max(res, float(np.linalg.norm(d.site_xpos[s] - d.site_xpos[a])))
+    return res
+
+
+def format_info(info: dict) -> str:
+    lines = [
+        f"simulation model : nq={info['sim_nq']} nv={info['sim_nv']} bodies={info['sim_nbody']} "
+        f"nu={info['nu']} mass={info['mass_kg']:.3f} kg dt={info['timestep_s']} s",
+        f"controller model : nq={info['ctrl_nq']} nv={info['ctrl_nv']} nu={info['nu']} "
+        f"mass={info['ctrl_mass_kg']:.3f} kg (rods left out)",
+        f"stand keyframe   : loop residual {info['loop_residual_m']:.2e} m, foot heights "
+        f"{info['foot_height_m'][0]:.2e} / {info['foot_height_m'][1]:.2e} m, "
+        f"CoM height {info['com_height_m']:.3f} m",
+        "joint torque limits (N m):",
+    ]
+    for name, lim in info["torque_limit_Nm"].items():
+        lines.append(f"  {name:<22s} {lim:8.2f}")
+    return "\n".join(lines)

@@ -1,0 +1,42 @@
+import jax
+import numpy as np
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(scope="session")
+def ctrl_mj():
+    import mujoco
+
+    from safewbc_jax import paths
+
+    return mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
+
+
+@pytest.fixture(scope="session")
+def sim_mj():
+    import mujoco
+
+    from safewbc_jax import paths
+
+    return mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
+
+
+@pytest.fixture(scope="session")
+def rm(ctrl_mj):
+    from safewbc_jax import robot
+
+    return robot.from_mujoco(ctrl_mj)
+
+
+def random_state(m, rng, spread=0.4):
+    """A random controller state near the stand keyframe: random base pose, joints within
+    +-spread rad of stand, random velocities."""
+    q = m.key_qpos[0].copy()
+    q[:3] = rng.normal(0, 0.5, 3)
+    quat = rng.normal(size=4)
+    q[3:7] = quat / np.linalg.norm(quat)
+    q[7:] += rng.uniform(-spread, spread, m.nq - 7)
+    v = rng.normal(0, 1.0, m.nv)
+    return q, v
