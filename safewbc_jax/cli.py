@@ -15,6 +15,18 @@ def _cmd_model_info(args) -> int:
     return 0
 
 
+def _cmd_run(args) -> int:
+    from safewbc_jax.runner import format_summary, run_scenario
+
+    m = run_scenario(args.scenario, duration=args.duration, out=args.out,
+                     barrier=not args.no_barrier, params_file=args.params, video=args.video,
+                     settle=args.settle)
+    print(format_summary(m))
+    print(f"wrote {args.out or 'runs/' + args.scenario + ('' if not args.no_barrier else '_no_barrier')}"
+          "/metrics.json, log.npz and figures")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="safewbc", description=(
         "Safe whole-body task-space control of the humanoid Digit: an inverse-dynamics QP "
@@ -23,12 +35,28 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("model-info", help="sizes, mass, loop residual and foot heights of the models")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_model_info)
+
+    from safewbc_jax.scenarios import SCENARIOS
+
+    p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller")
+    p.add_argument("scenario", choices=sorted(SCENARIOS))
+    p.add_argument("--duration", type=float, default=None, help="seconds of motion")
+    p.add_argument("--settle", type=float, default=None, help="seconds standing before the motion")
+    p.add_argument("--out", default=None, help="output folder (default runs/SCENARIO)")
+    p.add_argument("--no-barrier", action="store_true", help="drop the A-ECBF rows")
+    p.add_argument("--params", default=None, help="TOML of ControllerParams overrides")
+    p.add_argument("--video", default=None, help="write an MP4 (offscreen rendering)")
+    p.set_defaults(func=_cmd_run)
     return ap
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (ValueError, RuntimeError, FileNotFoundError) as e:
+        print(f"safewbc: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -318,6 +318,32 @@ def bias_forces(model: RobotModel, q, v):
     return jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
 
 
+def dynamics_and_com(model: RobotModel, q, v):
+    """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v from one pass over the body Jacobians
+    and one forward-mode tangent of them (the controller's hot path; equal to
+    ``mass_matrix``, ``bias_forces``, ``com_position``, ``com_jacobian``, ``com_drift``)."""
+    def jacs(qq):
+        xpos, xrot = forward_kinematics(model, qq)
+        com, irot = body_com(model, xpos, xrot)
+        jp, jr = point_jacobians(model, xpos, xrot, np.arange(len(model.body_names)), com)
+        return jp, jr, irot, com
+
+    (jp, jr, irot, com), (djp, djr, _, _) = jax.jvp(jacs, (q,), (spatial.config_rate(q, v),))
+    acc, alpha = djp @ v, djr @ v
+    omega = jr @ v
+    iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
+    mass = jnp.einsum("b,bin,bim->nm", model.body_mass, jp, jp)
+    mass = mass + jnp.einsum("bin,bij,bjm->nm", jr, iworld, jr) + jnp.diag(model.armature)
+    force = model.body_mass[:, None] * (acc - model.gravity[None])
+    iw = jnp.einsum("bij,bj->bi", iworld, omega)
+    torque = jnp.einsum("bij,bj->bi", iworld, alpha) + jnp.cross(omega, iw)
+    h = jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
+    mtot = jnp.sum(model.body_mass)
+    return {"M": mass, "h": h, "com": model.body_mass @ com / mtot,
+            "J_com": jnp.einsum("b,bin->in", model.body_mass, jp) / mtot,
+            "Jdot_v_com": model.body_mass @ acc / mtot}
+
+
 def actuation_matrix(model: RobotModel):
     """B (nv x nu): joint torques u of the 20 motors to generalized forces."""
     return model.B

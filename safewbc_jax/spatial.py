@@ -111,3 +111,17 @@ def derivative_along(f, q, v):
     Jacobian, angular ones included."""
     t0 = jnp.zeros((), q.dtype)
     return jax.jvp(lambda t: f(integrate(q, v, t)), (t0,), (jnp.ones_like(t0),))[1]
+
+
+def config_rate(q, v):
+    """q_dot = d/dt integrate(q, v, t) at t = 0 (the quaternion part is 1/2 quat * (0, w))."""
+    t0 = jnp.zeros((), q.dtype)
+    return jax.jvp(lambda t: integrate(q, v, t), (t0,), (jnp.ones_like(t0),))[1]
+
+
+def with_drift(jac_fn, q, v):
+    """(J(q), J_dot(q, v) v) of a Jacobian-valued function in one forward-mode pass: the
+    tangent of J along q_dot, applied to v. Cheaper than evaluating J and
+    ``derivative_along(J v)`` separately."""
+    jac, djac = jax.jvp(jac_fn, (q,), (config_rate(q, v),))
+    return jac, jax.tree_util.tree_map(lambda d: d @ v, djac)

@@ -1,0 +1,107 @@
+"""The safe whole-body controller, closed over a scenario: state -> QP matrices -> torques.
+
+``robot_terms`` evaluates everything that depends on the robot (M, h, B, the chain and
+contact Jacobians with their drifts, every output's y^a, J_y, J_y_dot v);
+``build_qp`` turns them, the references and ``ControllerParams`` into the QP pytree (the
+seam). Both are pure JAX (jit, vmap). ``Controller`` is the single-robot deployment
+wrapper: jitted terms and assembly, PIQP with the fallback policy, and the last good
+torque held when even the fallback fails.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from safewbc_jax import barriers, chains, contacts, qp, robot, spatial
+from safewbc_jax.params import ControllerParams
+
+
+class Terms(NamedTuple):
+    M: jax.Array
+    h: jax.Array
+    J: jax.Array        # [J_chain (10); J_cont left (6); J_cont right (6)]
+    Jdot_v: jax.Array
+    outputs: dict       # name -> (y^a, J_y, J_y_dot v)
+
+
+def constraint_jacobian(model: robot.RobotModel, q):
+    """J(q) = [J_chain; J_cont] (eqs. 2-3): chains, then left and right sole (6D each)."""
+    return jnp.concatenate([chains.chain_jacobian(model, q),
+                            contacts.stacked_contact_jacobian(model, q)], axis=0)
+
+
+def robot_terms(model: robot.RobotModel, scenario, q, v) -> Terms:
+    """Every robot-dependent term of one control step, sharing the kinematic passes."""
+    dyn = robot.dynamics_and_com(model, q, v)
+    J, Jd = spatial.with_drift(lambda qq: constraint_jacobian(model, qq), q, v)
+    outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
+    return Terms(dyn["M"], dyn["h"], J, Jd, outs)
+
+
+def n_chain_rows(model) -> int:
+    return len(model.rod_names) + len(model.spring_dofs)
+
+
+def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau, start,
+             in_contact, barrier_on=True):
+    """QP matrices of one control step and an info dict (output errors, barrier values)."""
+    desired = scenario.desired(tau, start)
+    jac, drift, ystar, w, err = [], [], [], [], {}
+    for o in scenario.outputs:
+        ya, jy, jdv = terms.outputs[o.name]
+        yd, yd_dot, yd_ddot = desired[o.name]
+        y = ya - yd
+        ydot = jy @ v - yd_dot
+        ystar.append(-params.kp[o.name] * y - params.kd[o.name] * ydot + yd_ddot)
+        jac.append(jy), drift.append(jdv), w.append(params.weight[o.name])
+        err[o.name] = (ya, yd)
+    task_p, task_q = qp.task_cost(jac, drift, ystar, w, model.nv)
+
+    nc_chain = n_chain_rows(model)
+    nc = terms.J.shape[0]
+    contact_rows = np.arange(nc) >= nc_chain
+    in_contact = jnp.asarray(in_contact, q.dtype)
+    in_rows = jnp.concatenate([jnp.ones(nc_chain, q.dtype), jnp.repeat(in_contact, 6)])
+    g_lam, h_lam, soft_lam = contacts.contact_inequalities(
+        model, q, in_contact, params.mu, params.gamma_torsion, params.f_min, params.zmp_margin)
+    g_full = jnp.concatenate([jnp.zeros((g_lam.shape[0], nc_chain), q.dtype), g_lam], axis=1)
+
+    rows, bs, hvals = [], [], {}
+    for b in scenario.barriers:
+        r = barriers.aecbf_row(b.h_fn(model, params.threshold[b.name]), q, v,
+                               params.poles[b.name], b.relative_degree)
+        on = jnp.asarray(1.0 if barrier_on else 0.0, q.dtype)
+        rows.append(on * r.a_row)
+        bs.append(jnp.where(on > 0, r.b, -1e9))
+        hvals[b.name] = r.eta[0]
+    for b in scenario.monitors:
+        hf = b.h_fn(model, params.threshold[b.name])
+        hvals[b.name] = hf(q) if b.relative_degree == 2 else hf(q, v)
+    brow = jnp.stack(rows) if rows else jnp.zeros((0, model.nv), q.dtype)
+    bb = jnp.stack(bs) if bs else jnp.zeros((0,), q.dtype)
+
+    nu = model.nu
+    tangential = np.zeros(nc, bool)
+    for foot in range(2):  # f_x, f_y, m_z of each contact wrench
+        tangential[nc_chain + 6 * foot + np.array([0, 1, 5])] = True
+    gamma_lam = jnp.where(tangential, params.gamma_lambda + params.gamma_tangential,
+                          params.gamma_lambda)
+    gamma = jnp.concatenate([jnp.full(model.nv, params.gamma_qdd), jnp.full(nu, params.gamma_u),
+                             gamma_lam])
+    _, u_max = contacts.torque_limit_bounds(model)
+    # Holonomic rows J q_ddot = -J_dot v - kd J v: kd = 0 is eq. (2)-(3) as written.
+    jdot_v = terms.Jdot_v + params.kd_constraint * (terms.J @ v)
+    qpm = qp.assemble(M=terms.M, h=terms.h, B=model.B, J=terms.J, Jdot_v=jdot_v,
+                      contact_rows=contact_rows, in_contact_rows=in_rows, task_P=task_p,
+                      task_q=task_q, gamma=gamma, G_lambda=g_full, h_lambda=h_lam,
+                      soft_lambda=soft_lam, barrier_rows=brow, barrier_b=bb, u_max=u_max)
+    return qpm, {"outputs": err, "barrier_h": hvals}
+
+
+def output_start_values(model, scenario, q):
+    return {o.name: o.value(model, q) for o in scenario.outputs}

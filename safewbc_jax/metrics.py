@@ -1,0 +1,63 @@
+"""Run summaries with the names ``metrics.json`` uses (shared by the MuJoCo loop and the
+batched MJX rollouts)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+TRACKING_SKIP_S = 0.5   # tracking RMS counts from this long after the motion starts
+LATENCY_SKIP = 20       # first control steps (compilation, caches) left out of latency
+
+
+def _rms(x):
+    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
+
+
+def summarize(log: dict, run: dict, scenario_name: str, control_dt: float,
+              solver: str = "piqp", threshold_of=None) -> dict:
+    tau = log["tau"]
+    motion = tau >= 0
+    track = tau >= TRACKING_SKIP_S
+    tracking, components = {}, {}
+    for nm in run["outputs"]:
+        err = log[f"y_{nm}"] - log[f"yd_{nm}"]
+        tracking[nm] = _rms(np.linalg.norm(err[track], axis=1))
+        for i in range(err.shape[1]):
+            components[f"{nm}[{i}]"] = _rms(err[track, i])
+    lat = log["t_terms"] + log["t_assembly"] + log["t_solve"]
+    lat = lat[LATENCY_SKIP:] if lat.size > LATENCY_SKIP else lat
+    pct = lambda a, p: float(np.percentile(a, p)) if a.size else float("nan")  # noqa: E731
+    fb = log["fallback"]
+    barrier_min = {}
+    for name in run["barriers"] + run["monitors"]:
+        h = log[f"h_{name}"]
+        barrier_min[name] = float(np.min(h)) if h.size else float("nan")
+    zmp = log["zmp_margin"]
+    u = log["u"]
+    out = {
+        "scenario": scenario_name,
+        "solver": solver,
+        "sim_dt": run["sim_dt"],
+        "control_dt": control_dt,
+        "duration_s": float(max(tau[-1], 0.0) + control_dt) if tau.size else 0.0,
+        "settle_s": run["settle"],
+        "fell": bool(run["fell"]),
+        "control_steps": int(tau.size),
+        "qp_solved": int(np.sum(fb == "none")),
+        "qp_failed": int(np.sum(fb == "failed")),
+        "fallbacks": int(np.sum(fb == "relaxed")),
+        "step_latency_us": {"p50": pct(lat, 50), "p99": pct(lat, 99)},
+        "latency_breakdown_us_p50": {"robot_terms": pct(log["t_terms"][LATENCY_SKIP:], 50),
+                                     "assembly": pct(log["t_assembly"][LATENCY_SKIP:], 50),
+                                     "solve": pct(log["t_solve"][LATENCY_SKIP:], 50)},
+        "tracking_rms": tracking,
+        "tracking_rms_components": components,
+        "barrier_min": barrier_min,
+        "barriers_enforced": run["barriers"],
+        "zmp_margin_min": float(np.nanmin(zmp[motion])) if np.any(motion) and np.any(np.isfinite(zmp[motion])) else float("nan"),
+        "foot_slip_max": float(np.max(log["slip"])) if log["slip"].size else 0.0,
+        "torque_ratio_max": float(np.max(np.abs(u) / run["torque_limit"])) if u.size else 0.0,
+        "loop_residual_max": float(np.max(log["loop_residual"])) if log["loop_residual"].size else 0.0,
+        "compile_s": float(log.get("compile_s", np.nan)),
+    }
+    return out

@@ -1,0 +1,1 @@
+"""Simulation loops: the MuJoCo (C) deployment loop; MJX batched rollouts."""

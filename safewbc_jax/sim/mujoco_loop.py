@@ -1,0 +1,166 @@
+"""The deployment loop: MuJoCo (C) physics of ``models/scene.xml`` with the controller
+solved by PIQP at a fixed rate, as it would run on the robot.
+
+Each control step: the simulator's state is mapped to the controller's (q, v); the jitted
+robot terms and QP assembly run; PIQP solves with the fallback policy; the joint torques
+u become motor commands ctrl = u / gear; the physics advances control_dt. A settle period
+of standing precedes the motion (tau < 0); the paper's tau counts from its start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from safewbc_jax import barriers, contacts, controller, paths, robot, statemap
+from safewbc_jax.modelinfo import sim_loop_residual
+from safewbc_jax.params import ControllerParams
+from safewbc_jax.scenarios import Scenario, start_state
+from safewbc_jax.solvers.piqp_path import PiqpSolver
+
+FALL_HEIGHT = 0.55  # m: base below this counts as a fall
+
+
+@dataclasses.dataclass
+class RunConfig:
+    duration: float | None = None      # s of motion (scenario default when None)
+    control_dt: float = 1e-3           # s
+    barrier_on: bool = True
+    settle: float | None = None        # s of standing before the motion (scenario default)
+
+
+class CompiledController:
+    """Jitted robot terms and QP assembly of one scenario, and the PIQP solver."""
+
+    def __init__(self, model: robot.RobotModel, scenario: Scenario, solver=None):
+        self.model = model
+        self.scenario = scenario
+        self.terms = jax.jit(partial(controller.robot_terms, model, scenario))
+        self.assemble = jax.jit(partial(controller.build_qp, model, scenario),
+                                static_argnames=("barrier_on",))
+        self.solver = solver or PiqpSolver()
+        nv, nu = model.nv, model.nu
+        self.nv, self.nu = nv, nu
+        self.last_u = None
+
+    def step(self, params, q, v, tau, start, in_contact, barrier_on=True):
+        """One control step: (u, X or None, info, qp_aux, (t_terms, t_assembly, t_solve) us)."""
+        t0 = time.perf_counter()
+        terms = self.terms(q, v)
+        jax.block_until_ready(terms)
+        t1 = time.perf_counter()
+        qpm, aux = self.assemble(params, terms, q, v, tau, start, in_contact, barrier_on=barrier_on)
+        qpm = jax.tree_util.tree_map(np.asarray, qpm)
+        t2 = time.perf_counter()
+        x, info = self.solver.solve(qpm)
+        t3 = time.perf_counter()
+        if x is not None:
+            u = x[self.nv:self.nv + self.nu]
+            self.last_u = u
+        else:
+            u = self.last_u if self.last_u is not None else np.zeros(self.nu)
+        return u, x, info, aux, ((t1 - t0) * 1e6, (t2 - t1) * 1e6, (t3 - t2) * 1e6)
+
+
+def check_barrier_poles(model, scenario, params, q, v):
+    """Theorem 1 at the start state, before anything compiles: raises barriers.PoleError
+    naming the barrier, the pole and its bound."""
+    for b in scenario.barriers:
+        eta0 = barriers.barrier_lie_derivatives(b.h_fn(model, params.threshold[b.name]), q, v,
+                                                b.relative_degree)[0]
+        barriers.check_poles(b.name, np.asarray(eta0), np.asarray(params.poles[b.name]))
+
+
+def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None):
+    """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict)."""
+    import mujoco
+
+    ms = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
+    mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
+    model = robot.from_mujoco(mc)
+    sm = statemap.build_state_map(ms, mc)
+    d = mujoco.MjData(ms)
+    mujoco.mj_resetDataKeyframe(ms, d, ms.key("stand").id)
+    mujoco.mj_forward(ms, d)
+    n_sub = int(round(cfg.control_dt / ms.opt.timestep))
+    if n_sub < 1 or abs(n_sub * ms.opt.timestep - cfg.control_dt) > 1e-12:
+        raise ValueError(f"control_dt {cfg.control_dt} must be a positive multiple of the "
+                         f"simulation step {ms.opt.timestep}")
+    duration = scenario.duration if cfg.duration is None else cfg.duration
+    settle = scenario.settle if cfg.settle is None else cfg.settle
+    if duration <= 0:
+        raise ValueError(f"duration must be positive, got {duration}")
+    if settle < scenario.blend:
+        raise ValueError(f"settle ({settle} s) must cover the reference blend ({scenario.blend} s)")
+    scenario = dataclasses.replace(scenario, settle=settle)
+
+    q0, v0 = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
+    if cfg.barrier_on:
+        check_barrier_poles(model, scenario, params, q0, v0)
+    start = start_state(model, q0)
+    start["y0"] = controller.output_start_values(model, scenario, q0)
+    ctl = CompiledController(model, scenario)
+    in_contact = jnp.asarray(scenario.in_contact)
+    ctrl_lo, ctrl_hi = ms.actuator_ctrlrange[:, 0], ms.actuator_ctrlrange[:, 1]
+    sole_ids = [ms.site(f"{s}-sole").id for s in ("left", "right")]
+    sole0 = np.array([d.site_xpos[i][:2] for i in sole_ids])
+    base_id = ms.body("base").id
+
+    n_steps = int(round((settle + duration) / cfg.control_dt))
+    names = [o.name for o in scenario.outputs]
+    log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_terms", "t_assembly",
+                           "t_solve", "zmp_margin", "slip", "loop_residual", "base_z",
+                           "lambda", "qpos")}
+    for nm in names:
+        log[f"y_{nm}"], log[f"yd_{nm}"] = [], []
+    hnames = [b.name for b in scenario.barriers + scenario.monitors]
+    for hn in hnames:
+        log[f"h_{hn}"] = []
+    fell = False
+    zmp_fn = jax.jit(partial(contacts.zmp_margin, model))
+    nc_chain = controller.n_chain_rows(model)
+    compile_t0 = time.perf_counter()
+    for k in range(n_steps):
+        t = k * cfg.control_dt
+        tau = t - settle
+        q, v = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
+        u, x, info, aux, (tt, ta, ts) = ctl.step(params, q, v, jnp.asarray(tau), start,
+                                                 in_contact, barrier_on=cfg.barrier_on)
+        if k == 0:
+            compile_s = time.perf_counter() - compile_t0
+        d.ctrl[:] = np.clip(sm.to_ctrl(u), ctrl_lo, ctrl_hi)
+        lam = x[model.nv + model.nu + nc_chain:] if x is not None else np.full(12, np.nan)
+        log["t"].append(t), log["tau"].append(tau), log["u"].append(np.asarray(u))
+        log["status"].append(int(info["status"])), log["fallback"].append(info["fallback"])
+        log["t_terms"].append(tt), log["t_assembly"].append(ta), log["t_solve"].append(ts)
+        log["lambda"].append(lam)
+        log["zmp_margin"].append(float(zmp_fn(q, jnp.asarray(lam), in_contact))
+                                 if x is not None else np.nan)
+        for nm in names:
+            ya, yd = aux["outputs"][nm]
+            log[f"y_{nm}"].append(np.asarray(ya)), log[f"yd_{nm}"].append(np.asarray(yd))
+        for hn in hnames:
+            log[f"h_{hn}"].append(float(aux["barrier_h"][hn]))
+        for _ in range(n_sub):
+            mujoco.mj_step(ms, d)
+        slip = np.linalg.norm(np.array([d.site_xpos[i][:2] for i in sole_ids]) - sole0, axis=1)
+        log["slip"].append(slip.max()), log["loop_residual"].append(sim_loop_residual(ms, d))
+        log["base_z"].append(float(d.xpos[base_id][2]))
+        log["qpos"].append(d.qpos.copy())
+        if not np.all(np.isfinite(d.qpos)) or d.xpos[base_id][2] < FALL_HEIGHT:
+            fell = True
+            break
+        if progress is not None and k % 500 == 0:
+            progress(k, n_steps)
+    arrays = {k: np.asarray(v) for k, v in log.items()}
+    arrays["compile_s"] = np.asarray(compile_s)
+    return arrays, dict(fell=fell, settle=settle, duration=duration, n_sub=n_sub,
+                        sim_dt=float(ms.opt.timestep), torque_limit=np.asarray(model.torque_limit),
+                        outputs=names, barriers=[b.name for b in scenario.barriers],
+                        monitors=[b.name for b in scenario.monitors])
