@@ -73,9 +73,10 @@ def chain_residual(model: RobotModel, q):
     return n_kc(model, q) - n_kc_target(model)
 
 
-def chain_jacobian(model: RobotModel, q):
-    """J_chain(q) = d n_kc / d q in the tangent space (rows of eq. 2)."""
-    xpos, xrot = forward_kinematics(model, q)
+def chain_jacobian(model: RobotModel, q, kin=None):
+    """J_chain(q) = d n_kc / d q in the tangent space (rows of eq. 2). ``kin``: the
+    forward kinematics of q when already computed."""
+    xpos, xrot = forward_kinematics(model, q) if kin is None else kin
     a = [s for s, _ in model.rod_sites]
     b = [s for _, s in model.rod_sites]
     ba, pa = _site_points(model, xpos, xrot, a)

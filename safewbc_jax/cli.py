@@ -46,13 +46,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-barrier", action="store_true", help="drop the A-ECBF rows")
     p.add_argument("--params", default=None, help="TOML of ControllerParams overrides")
     p.add_argument("--video", default=None, help="write an MP4 (offscreen rendering)")
+    p.add_argument("--cpu", type=int, default=None, metavar="N",
+                   help="pin the run to CPU core N (default: the last core; -1: no pinning). "
+                        "A real-time loop runs on one core: XLA's thread pool spread over "
+                        "shared cores adds wake-up latency to every control step")
     p.set_defaults(func=_cmd_run)
     return ap
+
+
+def pin_to_cpu(cpu: int | None) -> int | None:
+    """Pin this process (and the threads it starts later, XLA's among them) to one core,
+    before JAX starts its CPU backend. Returns the core, or None when not pinned."""
+    import os
+
+    if cpu == -1 or not hasattr(os, "sched_setaffinity"):
+        return None
+    cores = sorted(os.sched_getaffinity(0))
+    cpu = cores[-1] if cpu is None else cpu
+    if cpu not in cores:
+        raise ValueError(f"--cpu {cpu}: this process may run on cores {cores}")
+    os.sched_setaffinity(0, {cpu})
+    return cpu
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if args.command == "run":
+            pin_to_cpu(args.cpu)
         return args.func(args)
     except (ValueError, RuntimeError, FileNotFoundError) as e:
         print(f"safewbc: error: {e}", file=sys.stderr)

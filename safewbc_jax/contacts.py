@@ -61,11 +61,12 @@ _TOL = 1e-9  # m: points closer than this are one point; turns this small count 
 # Sole frames and contact Jacobians (eq. 3)
 # --------------------------------------------------------------------------------------
 
-def _site_frames(model: RobotModel, q, frames, jacobians=False):
+def _site_frames(model: RobotModel, q, frames, jacobians=False, kin=None):
     """World positions (k, 3) and rotations (k, 3, 3) of several sites from ONE forward
     kinematics pass (the same formulas as robot.frame_pose / frame_jacobian), and with
-    ``jacobians`` their world [linear; angular] Jacobians (k, 6, nv)."""
-    xpos, xrot = robot.forward_kinematics(model, q)
+    ``jacobians`` their world [linear; angular] Jacobians (k, 6, nv). ``kin``: the
+    forward kinematics (xpos, xrot) of q when already computed."""
+    xpos, xrot = robot.forward_kinematics(model, q) if kin is None else kin
     sites = [model.site_id(f) for f in frames]
     bodies = [model.site_body[s] for s in sites]
     # static (python int) indices: XLA then prunes the bodies the feet do not depend on
@@ -77,13 +78,13 @@ def _site_frames(model: RobotModel, q, frames, jacobians=False):
     return p, r, jnp.concatenate([jp, jr], axis=1)
 
 
-def sole_poses(model: RobotModel, q):
+def sole_poses(model: RobotModel, q, kin=None):
     """World positions (2, 3) and rotations (2, 3, 3) of the left and right sole sites."""
-    return _site_frames(model, q, FEET)
+    return _site_frames(model, q, FEET, kin=kin)
 
 
-def _contact_jacobians(model: RobotModel, q, frames):
-    _, r, j = _site_frames(model, q, frames, jacobians=True)
+def _contact_jacobians(model: RobotModel, q, frames, kin=None):
+    _, r, j = _site_frames(model, q, frames, jacobians=True, kin=kin)
     rt = jnp.swapaxes(r, 1, 2)
     return jnp.concatenate([rt @ j[:, :3], rt @ j[:, 3:]], axis=1)  # (k, 6, nv)
 
@@ -103,9 +104,9 @@ def contact_drift(model: RobotModel, q, v, frame: str):
     return spatial.derivative_along(lambda qq: contact_jacobian(model, qq, frame) @ v, q, v)
 
 
-def stacked_contact_jacobian(model: RobotModel, q):
+def stacked_contact_jacobian(model: RobotModel, q, kin=None):
     """[J_cont^left; J_cont^right] (12 x nv), rows in the order of the stacked lambda."""
-    return _contact_jacobians(model, q, FEET).reshape(12, -1)
+    return _contact_jacobians(model, q, FEET, kin).reshape(12, -1)
 
 
 def stacked_contact_drift(model: RobotModel, q, v):
@@ -338,7 +339,8 @@ def support_polygon(model: RobotModel, q, in_contact, margin=0.0,
     return _support_polygon(sole_poses(model, q), in_contact, margin, sole)
 
 
-def zmp_rows(model: RobotModel, q, in_contact, margin=0.0, sole=(SOLE_LENGTH, SOLE_WIDTH)):
+def zmp_rows(model: RobotModel, q, in_contact, margin=0.0, sole=(SOLE_LENGTH, SOLE_WIDTH),
+             kin=None):
     """Eq. (9) as linear rows over the stacked lambda (12): (G 8 x 12, h 8).
 
     For an edge n . p <= d - margin of :func:`support_polygon`, multiplying by F_z > 0
@@ -348,7 +350,7 @@ def zmp_rows(model: RobotModel, q, in_contact, margin=0.0, sole=(SOLE_LENGTH, SO
         n_x (z0 F_x - M_y) + n_y (M_x + z0 F_y) - (d - margin) F_z <= 0,
 
     linear in lambda^w = W lambda. Inactive edges give 0 <= 1."""
-    poses = sole_poses(model, q)
+    poses = sole_poses(model, q, kin)
     poly = _support_polygon(poses, in_contact, margin, sole)
     w = _wrench_map(poses, in_contact)
     nx, ny, d, z0 = poly.normals[:, 0], poly.normals[:, 1], poly.offsets, poly.height
@@ -395,7 +397,8 @@ def zmp_margin(model: RobotModel, q, lambdas, in_contact, sole=(SOLE_LENGTH, SOL
 # Everything on lambda, and torque bounds
 # --------------------------------------------------------------------------------------
 
-def contact_inequalities(model: RobotModel, q, in_contact, mu, gamma, f_min, zmp_margin=0.0):
+def contact_inequalities(model: RobotModel, q, in_contact, mu, gamma, f_min, zmp_margin=0.0,
+                         kin=None):
     """All contact inequalities on the stacked lambda (12), G_lambda lambda <= h:
 
         rows  0- 6: left foot friction pyramid, f_z >= f_min, torsion  (eqs. 4-7)
@@ -406,7 +409,7 @@ def contact_inequalities(model: RobotModel, q, in_contact, mu, gamma, f_min, zmp
     rows (the fallback may relax them) and 0.0 on the friction rows. Feet not in contact
     and unused hull slots give rows 0 <= 1."""
     gf, hf = stacked_friction_rows(in_contact, mu, gamma, f_min)
-    gz, hz = zmp_rows(model, q, in_contact, zmp_margin)
+    gz, hz = zmp_rows(model, q, in_contact, zmp_margin, kin=kin)
     g = jnp.concatenate([gf, gz], axis=0)
     h = jnp.concatenate([hf, hz])
     soft = jnp.concatenate([jnp.zeros(hf.shape, h.dtype), jnp.ones(hz.shape, h.dtype)])

@@ -27,20 +27,28 @@ class Terms(NamedTuple):
     J: jax.Array        # [J_chain (10); J_cont left (6); J_cont right (6)]
     Jdot_v: jax.Array
     outputs: dict       # name -> (y^a, J_y, J_y_dot v)
+    kin: tuple          # forward kinematics (xpos, xrot) of q
 
 
-def constraint_jacobian(model: robot.RobotModel, q):
+def constraint_jacobian(model: robot.RobotModel, q, kin=None):
     """J(q) = [J_chain; J_cont] (eqs. 2-3): chains, then left and right sole (6D each)."""
-    return jnp.concatenate([chains.chain_jacobian(model, q),
-                            contacts.stacked_contact_jacobian(model, q)], axis=0)
+    return jnp.concatenate([chains.chain_jacobian(model, q, kin),
+                            contacts.stacked_contact_jacobian(model, q, kin)], axis=0)
 
 
 def robot_terms(model: robot.RobotModel, scenario, q, v) -> Terms:
-    """Every robot-dependent term of one control step, sharing the kinematic passes."""
-    dyn = robot.dynamics_and_com(model, q, v)
-    J, Jd = spatial.with_drift(lambda qq: constraint_jacobian(model, qq), q, v)
+    """Every robot-dependent term of one control step: one forward-kinematics pass gives
+    the body, chain and contact Jacobians, and one forward-mode tangent of it along q_dot
+    all their drift terms (XLA on the CPU pays per operation: sharing the passes halves
+    the cost of computing them one by one)."""
+    def jacobians(qq):
+        kin = robot.forward_kinematics(model, qq)
+        return robot.com_jacobians(model, kin), constraint_jacobian(model, qq, kin), kin
+
+    (bodies, J, kin), (dbodies, dJ, _) = jax.jvp(jacobians, (q,), (spatial.config_rate(q, v),))
+    dyn = robot.dynamics_from_jacobians(model, bodies, dbodies, v)
     outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
-    return Terms(dyn["M"], dyn["h"], J, Jd, outs)
+    return Terms(dyn["M"], dyn["h"], J, dJ @ v, outs, kin)
 
 
 def n_chain_rows(model) -> int:
@@ -68,7 +76,8 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
     in_contact = jnp.asarray(in_contact, q.dtype)
     in_rows = jnp.concatenate([jnp.ones(nc_chain, q.dtype), jnp.repeat(in_contact, 6)])
     g_lam, h_lam, soft_lam = contacts.contact_inequalities(
-        model, q, in_contact, params.mu, params.gamma_torsion, params.f_min, params.zmp_margin)
+        model, q, in_contact, params.mu, params.gamma_torsion, params.f_min, params.zmp_margin,
+        kin=terms.kin)
     g_full = jnp.concatenate([jnp.zeros((g_lam.shape[0], nc_chain), q.dtype), g_lam], axis=1)
 
     rows, bs, hvals = [], [], {}

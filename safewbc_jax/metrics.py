@@ -24,7 +24,7 @@ def summarize(log: dict, run: dict, scenario_name: str, control_dt: float,
         tracking[nm] = _rms(np.linalg.norm(err[track], axis=1))
         for i in range(err.shape[1]):
             components[f"{nm}[{i}]"] = _rms(err[track, i])
-    lat = log["t_terms"] + log["t_assembly"] + log["t_solve"]
+    lat = log["t_qp"] + log["t_solve"]
     lat = lat[LATENCY_SKIP:] if lat.size > LATENCY_SKIP else lat
     pct = lambda a, p: float(np.percentile(a, p)) if a.size else float("nan")  # noqa: E731
     fb = log["fallback"]
@@ -47,9 +47,9 @@ def summarize(log: dict, run: dict, scenario_name: str, control_dt: float,
         "qp_failed": int(np.sum(fb == "failed")),
         "fallbacks": int(np.sum(fb == "relaxed")),
         "step_latency_us": {"p50": pct(lat, 50), "p99": pct(lat, 99)},
-        "latency_breakdown_us_p50": {"robot_terms": pct(log["t_terms"][LATENCY_SKIP:], 50),
-                                     "assembly": pct(log["t_assembly"][LATENCY_SKIP:], 50),
+        "latency_breakdown_us_p50": {"terms_and_assembly": pct(log["t_qp"][LATENCY_SKIP:], 50),
                                      "solve": pct(log["t_solve"][LATENCY_SKIP:], 50)},
+        "eq_residual_max": float(np.nanmax(log["eq_residual"])) if np.any(np.isfinite(log["eq_residual"])) else float("nan"),
         "tracking_rms": tracking,
         "tracking_rms_components": components,
         "barrier_min": barrier_min,
@@ -60,4 +60,8 @@ def summarize(log: dict, run: dict, scenario_name: str, control_dt: float,
         "loop_residual_max": float(np.max(log["loop_residual"])) if log["loop_residual"].size else 0.0,
         "compile_s": float(log.get("compile_s", np.nan)),
     }
+    if "torso" in run["outputs"] and np.any(motion):
+        pitch, pitch_d = log["y_torso"][motion, 1], log["yd_torso"][motion, 1]
+        out["torso_pitch_max_reached"] = float(np.max(pitch))
+        out["torso_pitch_ref_max"] = float(np.max(pitch_d))
     return out

@@ -229,41 +229,69 @@ def load_robot(path=None, dtype=jnp.float64) -> RobotModel:
 # Kinematics
 # --------------------------------------------------------------------------------------
 
+def _levels(model: RobotModel):
+    """Bodies grouped by depth below the root, each with its parents (static)."""
+    depth = []
+    for b, p in enumerate(model.body_parent):
+        depth.append(0 if p < 0 else depth[p] + 1)
+    out = []
+    for lv in range(1, max(depth) + 1):
+        bodies = [b for b in range(len(depth)) if depth[b] == lv]
+        out.append((np.array(bodies), np.array([model.body_parent[b] for b in bodies])))
+    return out
+
+
+def _hinges(model: RobotModel):
+    """Body indices of the hinge joints and their dof and qpos addresses (static)."""
+    hb = [b for b, t in enumerate(model.body_jtype) if t == HINGE]
+    return (np.array(hb), np.array([model.body_dadr[b] for b in hb]),
+            np.array([model.body_qadr[b] for b in hb]))
+
+
+def _axis_angle_batch(axes, angles):
+    """Rodrigues for a batch of unit axes [n, 3] and angles [n]."""
+    x, y, z = axes[:, 0], axes[:, 1], axes[:, 2]
+    zero = jnp.zeros_like(x)
+    k = jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1),
+                   jnp.stack([-y, x, zero], -1)], -2)
+    s, c = jnp.sin(angles)[:, None, None], jnp.cos(angles)[:, None, None]
+    return jnp.eye(3, dtype=axes.dtype) + s * k + (1.0 - c) * (k @ k)
+
+
 def forward_kinematics(model: RobotModel, q):
-    """World position and rotation of every body frame: (xpos [nb, 3], xrot [nb, 3, 3])."""
-    pos, rot = [], []
-    for b in range(len(model.body_names)):
-        t, p = model.body_jtype[b], model.body_parent[b]
-        if t == FREE:
-            pos.append(q[0:3])
-            rot.append(spatial.quat_to_mat(q[3:7]))
-            continue
-        ppos = pos[p] if p >= 0 else jnp.zeros(3, q.dtype)
-        prot = rot[p] if p >= 0 else jnp.eye(3, dtype=q.dtype)
-        r = prot @ model.body_rot[b]
-        if t == HINGE:
-            r = r @ spatial.axis_angle_mat(model.jnt_axis[b], q[model.body_qadr[b]])
-        pos.append(ppos + prot @ model.body_pos[b])
-        rot.append(r)
-    return jnp.stack(pos), jnp.stack(rot)
+    """World position and rotation of every body frame: (xpos [nb, 3], xrot [nb, 3, 3]).
+
+    Vectorized over the bodies of each tree level (XLA on the CPU pays per operation, so
+    ten batched steps are much cheaper than one step per body)."""
+    nb = len(model.body_names)
+    if model.body_jtype[0] != FREE or model.body_parent[0] != -1:
+        raise ValueError("the first body must carry the free joint")
+    hb, _, hq = _hinges(model)
+    angles = jnp.zeros(nb, q.dtype).at[hb].set(q[hq])
+    local = model.body_rot @ _axis_angle_batch(model.jnt_axis, angles)  # fixed: axis 0 -> I
+    xrot = jnp.zeros((nb, 3, 3), q.dtype).at[0].set(spatial.quat_to_mat(q[3:7]))
+    xpos = jnp.zeros((nb, 3), q.dtype).at[0].set(q[0:3])
+    for bodies, parents in _levels(model):
+        prot = xrot[parents]
+        xrot = xrot.at[bodies].set(prot @ local[bodies])
+        xpos = xpos.at[bodies].set(xpos[parents] + jnp.einsum("nij,nj->ni", prot, model.body_pos[bodies]))
+    return xpos, xrot
 
 
 def _dof_motion(model: RobotModel, xpos, xrot):
     """Per dof: world rotation axis w_k (zero for translations), anchor point o_k, and
     translation direction t_k (zero for rotations). A point x of a body moved by dof k
     gets velocity w_k x (x - o_k) + t_k per unit of v_k."""
+    hb, hd, _ = _hinges(model)
+    k0 = model.body_dadr[0]
+    eye = jnp.eye(3, dtype=xpos.dtype)
     w = jnp.zeros((model.nv, 3), xpos.dtype)
+    w = w.at[k0 + 3:k0 + 6].set(xrot[0].T)  # free joint: body-frame angular velocity
+    w = w.at[hd].set(jnp.einsum("nij,nj->ni", xrot[hb], model.jnt_axis[hb]))
     o = jnp.zeros((model.nv, 3), xpos.dtype)
-    t = jnp.zeros((model.nv, 3), xpos.dtype)
-    for b, jt in enumerate(model.body_jtype):
-        k = model.body_dadr[b]
-        if jt == FREE:
-            t = t.at[k:k + 3].set(jnp.eye(3, dtype=xpos.dtype))
-            w = w.at[k + 3:k + 6].set(xrot[b].T)  # body-frame angular velocity
-            o = o.at[k + 3:k + 6].set(jnp.broadcast_to(xpos[b], (3, 3)))
-        elif jt == HINGE:
-            w = w.at[k].set(xrot[b] @ model.jnt_axis[b])
-            o = o.at[k].set(xpos[b])
+    o = o.at[k0 + 3:k0 + 6].set(jnp.broadcast_to(xpos[0], (3, 3)))
+    o = o.at[hd].set(xpos[hb])
+    t = jnp.zeros((model.nv, 3), xpos.dtype).at[k0:k0 + 3].set(eye)
     return w, o, t
 
 
@@ -318,17 +346,20 @@ def bias_forces(model: RobotModel, q, v):
     return jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
 
 
-def dynamics_and_com(model: RobotModel, q, v):
-    """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v from one pass over the body Jacobians
-    and one forward-mode tangent of them (the controller's hot path; equal to
-    ``mass_matrix``, ``bias_forces``, ``com_position``, ``com_jacobian``, ``com_drift``)."""
-    def jacs(qq):
-        xpos, xrot = forward_kinematics(model, qq)
-        com, irot = body_com(model, xpos, xrot)
-        jp, jr = point_jacobians(model, xpos, xrot, np.arange(len(model.body_names)), com)
-        return jp, jr, irot, com
+def com_jacobians(model: RobotModel, kin):
+    """Per body, from forward kinematics ``kin`` = (xpos, xrot): linear and angular
+    Jacobians of its centre of mass [nb, 3, nv], principal-axis rotation, CoM position."""
+    xpos, xrot = kin
+    com, irot = body_com(model, xpos, xrot)
+    jp, jr = point_jacobians(model, xpos, xrot, np.arange(len(model.body_names)), com)
+    return jp, jr, irot, com
 
-    (jp, jr, irot, com), (djp, djr, _, _) = jax.jvp(jacs, (q,), (spatial.config_rate(q, v),))
+
+def dynamics_from_jacobians(model: RobotModel, bodies, dbodies, v):
+    """M, h and the CoM terms from the body Jacobians ``bodies`` = com_jacobians(...) and
+    their tangent ``dbodies`` along q_dot (see ``dynamics_and_com``)."""
+    jp, jr, irot, com = bodies
+    djp, djr = dbodies[0], dbodies[1]
     acc, alpha = djp @ v, djr @ v
     omega = jr @ v
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
@@ -342,6 +373,17 @@ def dynamics_and_com(model: RobotModel, q, v):
     return {"M": mass, "h": h, "com": model.body_mass @ com / mtot,
             "J_com": jnp.einsum("b,bin->in", model.body_mass, jp) / mtot,
             "Jdot_v_com": model.body_mass @ acc / mtot}
+
+
+def dynamics_and_com(model: RobotModel, q, v):
+    """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v from one pass over the body Jacobians
+    and one forward-mode tangent of them (equal to ``mass_matrix``, ``bias_forces``,
+    ``com_position``, ``com_jacobian``, ``com_drift``)."""
+    def jacs(qq):
+        return com_jacobians(model, forward_kinematics(model, qq))
+
+    bodies, dbodies = jax.jvp(jacs, (q,), (spatial.config_rate(q, v),))
+    return dynamics_from_jacobians(model, bodies, dbodies, v)
 
 
 def actuation_matrix(model: RobotModel):

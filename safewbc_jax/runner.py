@@ -78,8 +78,8 @@ def format_summary(m: dict) -> str:
              f"  fell: {m['fell']}   QPs solved {m['qp_solved']}, fallbacks {m['fallbacks']}, "
              f"failed {m['qp_failed']}",
              f"  step latency p50 {m['step_latency_us']['p50']:.0f} us, p99 "
-             f"{m['step_latency_us']['p99']:.0f} us  (terms {m['latency_breakdown_us_p50']['robot_terms']:.0f}"
-             f" / assembly {m['latency_breakdown_us_p50']['assembly']:.0f} / solve "
+             f"{m['step_latency_us']['p99']:.0f} us  (terms + assembly "
+             f"{m['latency_breakdown_us_p50']['terms_and_assembly']:.0f} / solve "
              f"{m['latency_breakdown_us_p50']['solve']:.0f})",
              "  tracking RMS: " + ", ".join(f"{k} {v:.4f}" for k, v in m["tracking_rms"].items())]
     if m["barrier_min"]:

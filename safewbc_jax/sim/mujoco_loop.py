@@ -20,8 +20,10 @@ import numpy as np
 
 from safewbc_jax import barriers, contacts, controller, paths, robot, statemap
 from safewbc_jax.modelinfo import sim_loop_residual
+from safewbc_jax.packing import Packer
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.scenarios import Scenario, start_state
+from safewbc_jax.solvers import reduce
 from safewbc_jax.solvers.piqp_path import PiqpSolver
 
 FALL_HEIGHT = 0.55  # m: base below this counts as a fall
@@ -36,36 +38,84 @@ class RunConfig:
 
 
 class CompiledController:
-    """Jitted robot terms and QP assembly of one scenario, and the PIQP solver."""
+    """One jitted function from the state to the QP (robot terms, assembly and the exact
+    elimination of its equality rows, ``solvers.reduce``), and PIQP on the reduced
+    20-variable QP.
 
-    def __init__(self, model: robot.RobotModel, scenario: Scenario, solver=None):
+    ``reduced=False`` hands PIQP the full 78-variable QP instead (the reference path).
+    ``reduce_on``: "host" runs the elimination in numpy after the jitted assembly (a few
+    LAPACK calls: cheaper on the CPU than XLA's small factorisations), "device" inside it.
+    """
+
+    def __init__(self, model: robot.RobotModel, scenario: Scenario, solver=None, reduced=True,
+                 reduce_on="host"):
+        if reduce_on not in ("host", "device"):
+            raise ValueError(f"reduce_on must be 'host' or 'device', got {reduce_on!r}")
         self.model = model
         self.scenario = scenario
-        self.terms = jax.jit(partial(controller.robot_terms, model, scenario))
-        self.assemble = jax.jit(partial(controller.build_qp, model, scenario),
-                                static_argnames=("barrier_on",))
         self.solver = solver or PiqpSolver()
-        nv, nu = model.nv, model.nu
-        self.nv, self.nu = nv, nu
+        self.reduced = reduced
+        self.reduce_on = reduce_on
+        self.nv, self.nu = model.nv, model.nu
         self.last_u = None
+        self._fn = {}
+
+    def _compiled(self, barrier_on, params, q, v, tau, start, in_contact):
+        key = bool(barrier_on)
+        if key not in self._fn:
+            model, scenario = self.model, self.scenario
+
+            def full(params, q, v, tau, start, in_contact):
+                terms = controller.robot_terms(model, scenario, q, v)
+                return controller.build_qp(model, scenario, params, terms, q, v, tau, start,
+                                           in_contact, barrier_on=key)
+
+            full_jit = jax.jit(full)
+            qp0, _ = full_jit(params, q, v, tau, start, in_contact)
+            bounded = reduce.bounded_variables(qp0, model.nv, model.nu)
+            self._bounded = bounded
+            if self.reduce_on == "host":
+                packer = Packer()
+                packed = jax.jit(lambda *a: packer.pack(full(*a)))
+                self._fn[key] = lambda *a: packer.unpack(packed(*a))
+            else:
+                def step(params, q, v, tau, start, in_contact):
+                    qpm, aux = full(params, q, v, tau, start, in_contact)
+                    red, rmap = reduce.eliminate_equalities(qpm, model.nv, model.nu, bounded)
+                    return qpm, red, rmap, aux
+
+                self._fn[key] = jax.jit(step)
+        return self._fn[key]
 
     def step(self, params, q, v, tau, start, in_contact, barrier_on=True):
-        """One control step: (u, X or None, info, qp_aux, (t_terms, t_assembly, t_solve) us)."""
+        """One control step: (u, X or None, info, aux, (t_qp, t_solve) in us)."""
+        fn = self._compiled(barrier_on, params, q, v, tau, start, in_contact)
         t0 = time.perf_counter()
-        terms = self.terms(q, v)
-        jax.block_until_ready(terms)
+        if self.reduce_on == "host":
+            qpm, aux = fn(params, q, v, tau, start, in_contact)
+            if self.reduced:
+                red, rmap = reduce.eliminate_equalities_np(qpm, self.nv, self.nu, self._bounded)
+        else:
+            qpm, red, rmap, aux = fn(params, q, v, tau, start, in_contact)
+            qpm = jax.tree_util.tree_map(np.asarray, qpm)
+            red, rmap = jax.tree_util.tree_map(np.asarray, (red, rmap))
+        if self.reduced:
+            x0, nmat = rmap.x0, rmap.N
         t1 = time.perf_counter()
-        qpm, aux = self.assemble(params, terms, q, v, tau, start, in_contact, barrier_on=barrier_on)
-        qpm = jax.tree_util.tree_map(np.asarray, qpm)
+        if self.reduced:
+            z, info = self.solver.solve(red)
+            x = None if z is None else x0 + nmat @ z
+        else:
+            x, info = self.solver.solve(qpm)
         t2 = time.perf_counter()
-        x, info = self.solver.solve(qpm)
-        t3 = time.perf_counter()
         if x is not None:
             u = x[self.nv:self.nv + self.nu]
             self.last_u = u
+            if self.reduced:
+                info["eq_residual"] = float(np.max(np.abs(qpm.A @ x - qpm.b)))
         else:
             u = self.last_u if self.last_u is not None else np.zeros(self.nu)
-        return u, x, info, aux, ((t1 - t0) * 1e6, (t2 - t1) * 1e6, (t3 - t2) * 1e6)
+        return u, x, info, aux, ((t1 - t0) * 1e6, (t2 - t1) * 1e6)
 
 
 def check_barrier_poles(model, scenario, params, q, v):
@@ -114,8 +164,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
 
     n_steps = int(round((settle + duration) / cfg.control_dt))
     names = [o.name for o in scenario.outputs]
-    log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_terms", "t_assembly",
-                           "t_solve", "zmp_margin", "slip", "loop_residual", "base_z",
+    log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_qp",
+                           "t_solve", "zmp_margin", "eq_residual", "slip", "loop_residual", "base_z",
                            "lambda", "qpos")}
     for nm in names:
         log[f"y_{nm}"], log[f"yd_{nm}"] = [], []
@@ -126,11 +176,12 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     zmp_fn = jax.jit(partial(contacts.zmp_margin, model))
     nc_chain = controller.n_chain_rows(model)
     compile_t0 = time.perf_counter()
+    compile_s = 0.0
     for k in range(n_steps):
         t = k * cfg.control_dt
         tau = t - settle
         q, v = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
-        u, x, info, aux, (tt, ta, ts) = ctl.step(params, q, v, jnp.asarray(tau), start,
+        u, x, info, aux, (tq, ts) = ctl.step(params, q, v, jnp.asarray(tau), start,
                                                  in_contact, barrier_on=cfg.barrier_on)
         if k == 0:
             compile_s = time.perf_counter() - compile_t0
@@ -138,7 +189,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         lam = x[model.nv + model.nu + nc_chain:] if x is not None else np.full(12, np.nan)
         log["t"].append(t), log["tau"].append(tau), log["u"].append(np.asarray(u))
         log["status"].append(int(info["status"])), log["fallback"].append(info["fallback"])
-        log["t_terms"].append(tt), log["t_assembly"].append(ta), log["t_solve"].append(ts)
+        log["t_qp"].append(tq), log["t_solve"].append(ts)
+        log["eq_residual"].append(info["eq_residual"] if x is not None else np.nan)
         log["lambda"].append(lam)
         log["zmp_margin"].append(float(zmp_fn(q, jnp.asarray(lam), in_contact))
                                  if x is not None else np.nan)

@@ -1,0 +1,36 @@
+"""Move a pytree of arrays from a jitted function to numpy in one transfer.
+
+On the CPU each device-to-host conversion costs several microseconds; a control step
+returns about thirty arrays (the QP and the logged outputs), so the jitted function
+returns them as one flat vector and the host splits it into numpy views.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class Packer:
+    """``pack`` (inside jit) flattens a pytree into one vector; ``unpack`` (host) rebuilds
+    it from numpy views. The structure is recorded by the first ``pack`` trace."""
+
+    def __init__(self):
+        self.treedef = None
+        self.shapes = None
+
+    def pack(self, tree):
+        leaves, treedef = jax.tree_util.tree_flatten(tree)
+        self.treedef = treedef
+        self.shapes = [jnp.shape(x) for x in leaves]
+        return jnp.concatenate([jnp.ravel(jnp.asarray(x, jnp.float64)) for x in leaves])
+
+    def unpack(self, flat):
+        flat = np.asarray(flat)
+        out, i = [], 0
+        for shape in self.shapes:
+            n = int(np.prod(shape))
+            out.append(flat[i:i + n].reshape(shape))
+            i += n
+        return jax.tree_util.tree_unflatten(self.treedef, out)

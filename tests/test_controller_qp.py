@@ -1,0 +1,151 @@
+"""The controller's QP at a real state: PIQP solutions against the dynamics, the exact
+equality elimination against the full QP, parameter and pole validation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from safewbc_jax import controller, scenarios
+from safewbc_jax.params import ParamsError, apply_overrides, load_overrides, to_toml
+from safewbc_jax.solvers import reduce
+from safewbc_jax.solvers.piqp_path import PiqpSolver
+from safewbc_jax.solvers.status import SolveStatus
+
+
+@pytest.fixture(scope="module")
+def arms_qp(ctrl_mj, rm):
+    """The arms scenario's QP (barrier row included) at the stand pose with a random
+    velocity, half-way into the motion."""
+    sc = scenarios.get_scenario("arms")
+    params = sc.default_params()
+    q = jnp.asarray(ctrl_mj.key_qpos[0])
+    v = jnp.asarray(np.random.default_rng(3).normal(0, 0.2, rm.nv))
+    start = scenarios.start_state(rm, q)
+    start["y0"] = controller.output_start_values(rm, sc, q)
+
+    def fn(q, v, tau):
+        terms = controller.robot_terms(rm, sc, q, v)
+        return controller.build_qp(rm, sc, params, terms, q, v, tau, start, jnp.ones(2))
+
+    qpm, aux = jax.jit(fn)(q, v, jnp.asarray(6.0))
+    return jax.tree_util.tree_map(np.asarray, qpm), aux
+
+
+def test_qp_shapes_and_soft_rows(arms_qp, rm):
+    qpm, _ = arms_qp
+    n = rm.nv + rm.nu + 22
+    assert qpm.P.shape == (n, n) and qpm.A.shape == (rm.nv + 22, n)
+    assert qpm.G.shape == (22 + 1, n)  # friction/torsion 14, ZMP 8, one barrier row
+    np.testing.assert_array_equal(qpm.soft, [0] * 14 + [1] * 9)
+    np.testing.assert_allclose(qpm.P, qpm.P.T, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(qpm.P) > 0)
+
+
+def test_piqp_solution_satisfies_dynamics(arms_qp, rm):
+    qpm, _ = arms_qp
+    x, info = PiqpSolver().solve(qpm)
+    assert info["status"] == SolveStatus.SOLVED and info["fallback"] == "none"
+    nv, nu = rm.nv, rm.nu
+    qdd, u, lam = x[:nv], x[nv:nv + nu], x[nv + nu:]
+    m, h = qpm.A[:nv, :nv], -qpm.b[:nv]
+    jt = -qpm.A[:nv, nv + nu:]
+    # M q_ddot + h = B u + J^T lambda (eq. 1), to 1e-8 relative to the force scale.
+    res = m @ qdd + h - np.asarray(rm.B) @ u - jt @ lam
+    assert np.abs(res).max() <= 1e-8 * max(1.0, np.abs(h).max())
+    assert np.abs(qpm.A @ x - qpm.b).max() <= 1e-8 * max(1.0, np.abs(qpm.b).max())
+    assert np.max(qpm.G @ x - qpm.h) <= 1e-8
+    assert np.all(np.abs(u) <= np.asarray(rm.torque_limit) + 1e-8)
+
+
+def test_reduced_qp_is_the_same_problem(arms_qp, rm):
+    qpm, _ = arms_qp
+    bounded = reduce.bounded_variables(qpm, rm.nv, rm.nu)
+    assert bounded.size == 0
+    red, rmap = reduce.eliminate_equalities_np(qpm, rm.nv, rm.nu, bounded)
+    red_j, rmap_j = jax.jit(lambda qp: reduce.eliminate_equalities(qp, rm.nv, rm.nu, bounded))(qpm)
+    np.testing.assert_allclose(rmap_j.N, rmap.N, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(red_j.P, red.P, rtol=1e-9, atol=1e-9)
+    # Every u gives an X on the equality manifold.
+    u = np.random.default_rng(0).normal(0, 30, rm.nu)
+    x = rmap.x0 + rmap.N @ u
+    assert np.abs(qpm.A @ x - qpm.b).max() <= 1e-9 * max(1.0, np.abs(qpm.b).max())
+    # Solving the reduced QP gives the full QP's optimum. The internal-force directions of
+    # lambda cost only Gamma (1e-7 .. 1e-4), so the optimum is flat along them: compare at
+    # tight solver tolerances.
+    tight = dict(eps_abs=1e-12, eps_rel=1e-14, eps_duality_gap_abs=1e-12,
+                 eps_duality_gap_rel=1e-14)
+    z, info_r = PiqpSolver(**tight).solve(red)
+    x_full, info_f = PiqpSolver(**tight).solve(qpm)
+    assert info_r["fallback"] == info_f["fallback"] == "none"
+    x_red = rmap.x0 + rmap.N @ z
+    scale = max(1.0, np.abs(x_full).max())
+    assert np.abs(x_red - x_full).max() <= 1e-6 * scale
+    cost = lambda x: 0.5 * x @ qpm.P @ x + qpm.q @ x  # noqa: E731
+    assert cost(x_red) == pytest.approx(cost(x_full), rel=1e-7, abs=1e-7)
+
+
+def test_barrier_row_in_the_qp(arms_qp, rm, ctrl_mj):
+    """The barrier row of G is -(dh/dq) q_ddot <= K_alpha eta + J_dot v with the fist
+    height computed independently from MuJoCo."""
+    import mujoco
+
+    qpm, aux = arms_qp
+    d = mujoco.MjData(ctrl_mj)
+    d.qpos[:] = ctrl_mj.key_qpos[0]
+    mujoco.mj_kinematics(ctrl_mj, d)
+    t, f = ctrl_mj.site("torso").id, ctrl_mj.site("left-fist").id
+    pz = (d.site_xmat[t].reshape(3, 3).T @ (d.site_xpos[f] - d.site_xpos[t]))[2]
+    h = -pz - scenarios.ARM_THRESHOLD
+    assert float(aux["barrier_h"]["left_fist"]) == pytest.approx(h, abs=1e-12)
+    jp, _ = np.zeros((3, rm.nv)), None
+    row = -qpm.G[-1, :rm.nv]
+    assert np.abs(qpm.G[-1, rm.nv:]).max() == 0.0
+    assert np.linalg.norm(row) > 0.1  # the fist moves with the arm joints
+
+
+def test_params_overrides_validated(tmp_path):
+    sc = scenarios.get_scenario("arms")
+    p = sc.default_params()
+    good = tmp_path / "good.toml"
+    good.write_text("mu = 0.5\n[kp]\ncom = [90, 90, 120]\n[poles]\nleft_fist = [8.0, 12.0]\n")
+    p2 = apply_overrides(p, load_overrides(good), str(good))
+    assert float(p2.mu) == 0.5 and np.allclose(p2.poles["left_fist"], [8, 12])
+    np.testing.assert_allclose(p2.kp["com"], [90, 90, 120])
+    # Round trip through TOML.
+    back = tmp_path / "all.toml"
+    back.write_text(to_toml(p2))
+    p3 = apply_overrides(p, load_overrides(back), str(back))
+    for a, b in zip(jax.tree_util.tree_leaves(p2), jax.tree_util.tree_leaves(p3)):
+        np.testing.assert_allclose(a, b)
+    bad = {"nope = 1\n": "unknown key 'nope'",
+           "[kp]\nfoot = 3\n": "no output 'foot'",
+           "[poles]\nleft_fist = [-1.0, 3.0]\n": "poles must be > 0",
+           "[poles]\nleft_fist = [1.0, 2.0, 3.0]\n": "expected a number or a list of 2",
+           "mu = 'high'\n": "expected a finite number",
+           "[kd]\ntorso = [1, 2]\n": "list of 3"}
+    for text, msg in bad.items():
+        f = tmp_path / "bad.toml"
+        f.write_text(text)
+        with pytest.raises(ParamsError, match=msg.replace("[", r"\[").replace("(", r"\(")) as e:
+            apply_overrides(p, load_overrides(f), str(f))
+        assert str(f) in str(e.value)
+
+
+def test_bad_start_for_barrier_rejected_before_compile(tmp_path):
+    """A threshold that puts the start outside the safe set (Theorem 1 inapplicable) is a
+    clear error from the CLI, before any controller compiles."""
+    import subprocess
+    import sys
+    import time
+
+    f = tmp_path / "bad.toml"
+    f.write_text("[threshold]\nleft_fist = 0.195\n")  # the paper's value: unsafe start here
+    t0 = time.time()
+    out = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "run", "arms", "--params",
+                          str(f), "--out", str(tmp_path / "o"), "--cpu", "-1"],
+                         capture_output=True, text=True)
+    assert out.returncode == 2
+    assert "left_fist" in out.stderr and "h(x0)" in out.stderr, out.stderr
+    assert time.time() - t0 < 60
+    assert not (tmp_path / "o" / "metrics.json").exists()
