@@ -18,9 +18,16 @@ def _cmd_model_info(args) -> int:
 def _cmd_run(args) -> int:
     from safewbc_jax.runner import format_summary, run_scenario
 
+    push = None
+    if args.force is not None:
+        try:
+            push = tuple(float(f) for f in args.force.split(","))
+        except ValueError:
+            raise ValueError(f"--force {args.force!r}: expected FX,FY,FZ in newtons") from None
     m = run_scenario(args.scenario, duration=args.duration, out=args.out,
                      barrier=not args.no_barrier, params_file=args.params, video=args.video,
-                     settle=args.settle)
+                     settle=args.settle, speed=args.speed, push=push, push_at=args.at,
+                     push_for=args.push_for)
     print(format_summary(m))
     print(f"wrote {args.out or 'runs/' + args.scenario + ('' if not args.no_barrier else '_no_barrier')}"
           "/metrics.json, log.npz and figures")
@@ -39,7 +46,12 @@ def build_parser() -> argparse.ArgumentParser:
     from safewbc_jax.scenarios import SCENARIOS
 
     p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller")
-    p.add_argument("scenario", choices=sorted(SCENARIOS))
+    p.add_argument("scenario", choices=sorted(SCENARIOS) + ["push", "walk"])
+    p.add_argument("--speed", type=float, default=0.2, help="walk/push: forward speed (m/s)")
+    p.add_argument("--force", default=None, help="push: FX,FY,FZ on the torso (N); "
+                   "default 0,-30,0 (the paper's)")
+    p.add_argument("--at", type=float, default=None, help="push: start, s after walking starts")
+    p.add_argument("--for", dest="push_for", type=float, default=0.15, help="push: duration (s)")
     p.add_argument("--duration", type=float, default=None, help="seconds of motion")
     p.add_argument("--settle", type=float, default=None, help="seconds standing before the motion")
     p.add_argument("--out", default=None, help="output folder (default runs/SCENARIO)")

@@ -52,7 +52,8 @@ SOLE_WIDTH = 2 * 0.04     # m, along the sole site's y (digit.xml sole box half 
 N_FRICTION_ROWS = 7       # per foot: 4 pyramid faces, unilateral f_z >= f_min, 2 torsion
 N_HULL = 8                # corners of both soles = most edges the support polygon can have
 N_ZMP_ROWS = N_HULL
-N_CONTACT_ROWS = 2 * N_FRICTION_ROWS + N_ZMP_ROWS  # 22
+N_COP_ROWS = 4            # per foot: its own centre of pressure inside its sole
+N_CONTACT_ROWS = 2 * N_FRICTION_ROWS + 2 * N_COP_ROWS + N_ZMP_ROWS  # 30
 
 _TOL = 1e-9  # m: points closer than this are one point; turns this small count as straight
 
@@ -159,6 +160,29 @@ def stacked_friction_rows(in_contact, mu, gamma, f_min):
         gi = jnp.concatenate([g, zero] if i == 0 else [zero, g], axis=1)
         rows_g.append(jnp.where(c[i], gi, 0.0))
         rows_h.append(jnp.where(c[i], h, 1.0))
+    return jnp.concatenate(rows_g, axis=0), jnp.concatenate(rows_h)
+
+
+def cop_rows(in_contact, margin=0.0, sole=(SOLE_LENGTH, SOLE_WIDTH)):
+    """Each foot's own centre of pressure inside its sole (shrunk by ``margin``):
+    |m_x| <= (W/2 - margin) f_z and |m_y| <= (L/2 - margin) f_z in the contact frame,
+    as rows over the stacked lambda (8 x 12, 8).
+
+    Not in the paper, which bounds only the ZMP of the summed wrench: in double support
+    that lets one foot's pressure leave its sole (the foot tips on an edge) while the
+    global ZMP stays inside the hull. A flat foot holds only a wrench whose centre of
+    pressure lies on the sole; these rows say so, and imply the global ZMP rows."""
+    half_l = 0.5 * sole[0] - margin
+    half_w = 0.5 * sole[1] - margin
+    g = jnp.array([[0, 0, -half_w, 1.0, 0, 0], [0, 0, -half_w, -1.0, 0, 0],
+                   [0, 0, -half_l, 0, 1.0, 0], [0, 0, -half_l, 0, -1.0, 0]])
+    c = _contact_flags(in_contact)
+    zero = jnp.zeros_like(g)
+    rows_g, rows_h = [], []
+    for i in range(2):
+        gi = jnp.concatenate([g, zero] if i == 0 else [zero, g], axis=1)
+        rows_g.append(jnp.where(c[i], gi, 0.0))
+        rows_h.append(jnp.where(c[i], 0.0, 1.0) * jnp.ones(4))
     return jnp.concatenate(rows_g, axis=0), jnp.concatenate(rows_h)
 
 
@@ -403,16 +427,19 @@ def contact_inequalities(model: RobotModel, q, in_contact, mu, gamma, f_min, zmp
 
         rows  0- 6: left foot friction pyramid, f_z >= f_min, torsion  (eqs. 4-7)
         rows  7-13: right foot, same
-        rows 14-21: ZMP inside the support polygon shrunk by zmp_margin  (eq. 9)
+        rows 14-21: each foot's centre of pressure inside its sole (``cop_rows``)
+        rows 22-29: ZMP inside the support polygon shrunk by zmp_margin  (eq. 9)
 
-    Returns (G_lambda (22 x 12), h (22,), soft_mask (22,)) with soft_mask 1.0 on the ZMP
-    rows (the fallback may relax them) and 0.0 on the friction rows. Feet not in contact
-    and unused hull slots give rows 0 <= 1."""
+    Returns (G_lambda (30 x 12), h (30,), soft_mask (30,)) with soft_mask 1.0 on the
+    centre-of-pressure and ZMP rows (the fallback may relax them) and 0.0 on the friction
+    rows. Feet not in contact and unused hull slots give rows 0 <= 1."""
     gf, hf = stacked_friction_rows(in_contact, mu, gamma, f_min)
+    gc, hc = cop_rows(in_contact, zmp_margin)
     gz, hz = zmp_rows(model, q, in_contact, zmp_margin, kin=kin)
-    g = jnp.concatenate([gf, gz], axis=0)
-    h = jnp.concatenate([hf, hz])
-    soft = jnp.concatenate([jnp.zeros(hf.shape, h.dtype), jnp.ones(hz.shape, h.dtype)])
+    g = jnp.concatenate([gf, gc, gz], axis=0)
+    h = jnp.concatenate([hf, hc, hz])
+    soft = jnp.concatenate([jnp.zeros(hf.shape, h.dtype), jnp.ones(hc.shape, h.dtype),
+                            jnp.ones(hz.shape, h.dtype)])
     return g, h, soft
 
 

@@ -36,7 +36,7 @@ def constraint_jacobian(model: robot.RobotModel, q, kin=None):
                             contacts.stacked_contact_jacobian(model, q, kin)], axis=0)
 
 
-def robot_terms(model: robot.RobotModel, scenario, q, v) -> Terms:
+def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
     """Every robot-dependent term of one control step: one forward-kinematics pass gives
     the body, chain and contact Jacobians, and one forward-mode tangent of it along q_dot
     all their drift terms (XLA on the CPU pays per operation: sharing the passes halves
@@ -47,6 +47,7 @@ def robot_terms(model: robot.RobotModel, scenario, q, v) -> Terms:
 
     (bodies, J, kin), (dbodies, dJ, _) = jax.jvp(jacobians, (q,), (spatial.config_rate(q, v),))
     dyn = robot.dynamics_from_jacobians(model, bodies, dbodies, v)
+    dyn["domain"] = domain
     outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
     return Terms(dyn["M"], dyn["h"], J, dJ @ v, outs, kin)
 
@@ -56,9 +57,16 @@ def n_chain_rows(model) -> int:
 
 
 def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau, start,
-             in_contact, barrier_on=True):
-    """QP matrices of one control step and an info dict (output errors, barrier values)."""
-    desired = scenario.desired(tau, start)
+             in_contact, barrier_on=True, domain=None):
+    """QP matrices of one control step and an info dict (output errors, barrier values).
+
+    ``domain`` (walking): the gait state (stance side, step time, feet at step start,
+    commands) as data, so one compiled function serves every domain; its ``in_contact``
+    replaces the argument."""
+    if domain is not None:
+        in_contact = domain["in_contact"]
+    desired = scenario.desired_at(model, tau, start, q, v, domain)
+    mask = scenario.weight_mask(domain) if scenario.weight_mask is not None else {}
     jac, drift, ystar, w, err = [], [], [], [], {}
     for o in scenario.outputs:
         ya, jy, jdv = terms.outputs[o.name]
@@ -66,7 +74,8 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
         y = ya - yd
         ydot = jy @ v - yd_dot
         ystar.append(-params.kp[o.name] * y - params.kd[o.name] * ydot + yd_ddot)
-        jac.append(jy), drift.append(jdv), w.append(params.weight[o.name])
+        jac.append(jy), drift.append(jdv)
+        w.append(params.weight[o.name] * mask.get(o.name, 1.0))
         err[o.name] = (ya, yd)
     task_p, task_q = qp.task_cost(jac, drift, ystar, w, model.nv)
 
@@ -82,14 +91,14 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
 
     rows, bs, hvals = [], [], {}
     for b in scenario.barriers:
-        r = barriers.aecbf_row(b.h_fn(model, params.threshold[b.name]), q, v,
+        r = barriers.aecbf_row(b.h_fn(model, params.threshold[b.name], domain), q, v,
                                params.poles[b.name], b.relative_degree)
-        on = jnp.asarray(1.0 if barrier_on else 0.0, q.dtype)
+        on = jnp.asarray(1.0 if barrier_on else 0.0, q.dtype) * b.is_active(domain)
         rows.append(on * r.a_row)
         bs.append(jnp.where(on > 0, r.b, -1e9))
         hvals[b.name] = r.eta[0]
     for b in scenario.monitors:
-        hf = b.h_fn(model, params.threshold[b.name])
+        hf = b.h_fn(model, params.threshold[b.name], domain)
         hvals[b.name] = hf(q) if b.relative_degree == 2 else hf(q, v)
     brow = jnp.stack(rows) if rows else jnp.zeros((0, model.nv), q.dtype)
     bb = jnp.stack(bs) if bs else jnp.zeros((0,), q.dtype)
@@ -103,6 +112,10 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
     gamma = jnp.concatenate([jnp.full(model.nv, params.gamma_qdd), jnp.full(nu, params.gamma_u),
                              gamma_lam])
     _, u_max = contacts.torque_limit_bounds(model)
+    if scenario.passive_actuators is not None:
+        # A passive joint (the stance ankle of the ALIP gait) is one whose motors give no
+        # torque: its bounds become 0 <= u <= 0.
+        u_max = u_max * (1.0 - scenario.passive_actuators(model, domain))
     # Holonomic rows J q_ddot = -J_dot v - kd J v: kd = 0 is eq. (2)-(3) as written.
     jdot_v = terms.Jdot_v + params.kd_constraint * (terms.J @ v)
     qpm = qp.assemble(M=terms.M, h=terms.h, B=model.B, J=terms.J, Jdot_v=jdot_v,

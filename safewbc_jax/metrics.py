@@ -60,6 +60,24 @@ def summarize(log: dict, run: dict, scenario_name: str, control_dt: float,
         "loop_residual_max": float(np.max(log["loop_residual"])) if log["loop_residual"].size else 0.0,
         "compile_s": float(log.get("compile_s", np.nan)),
     }
+    if run.get("walking"):
+        t = log["t"]
+        walk = tau >= 0
+        com = log["y_com"]
+        tw = t[walk]
+        if tw.size > 2:
+            half = tw[0] + 0.5 * (tw[-1] - tw[0])
+            i0, i1 = np.searchsorted(t, half), len(t) - 1
+            out["avg_forward_speed"] = float((com[i1, 0] - com[i0, 0]) / max(t[i1] - t[i0], 1e-9))
+        else:
+            out["avg_forward_speed"] = float("nan")
+        out["steps_taken"] = int(run["steps_taken"])
+        lc = log["leg_contact"].astype(bool)
+        out["leg_collisions"] = int(np.sum(lc[1:] & ~lc[:-1]) + (lc[0] if lc.size else 0))
+        out["leg_contact_steps"] = int(np.sum(lc))
+        ss = walk & (log["stance"] != 0)
+        out["swing_clearance_min"] = float(np.min(log["clearance"][ss])) if np.any(ss) else float("nan")
+        out["missed_touchdowns"] = int(log["missed_touchdowns"][-1]) if log["missed_touchdowns"].size else 0
     if "torso" in run["outputs"] and np.any(motion):
         pitch, pitch_d = log["y_torso"][motion, 1], log["yd_torso"][motion, 1]
         out["torso_pitch_max_reached"] = float(np.max(pitch))

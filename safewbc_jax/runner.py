@@ -36,11 +36,20 @@ def check_video_backend(path: str) -> None:
 
 
 def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_file=None,
-                 video=None, settle=None, control_dt=1e-3, quiet=False) -> dict:
+                 video=None, settle=None, control_dt=1e-3, quiet=False,
+                 record_qps_every=0, speed=0.2, push=None, push_at=None, push_for=0.15) -> dict:
     """Validate everything, run, write metrics.json, log.npz and figures; return metrics."""
     from safewbc_jax.sim.mujoco_loop import RunConfig, run
 
-    scenario = scenarios.get_scenario(name)
+    scenario = scenarios.get_scenario(name, barrier)
+    if name == "push" and push is None:
+        push = (0.0, -30.0, 0.0)  # the paper's lateral push
+    if push is not None and (len(push) != 3 or not all(np.isfinite(push))):
+        raise ValueError(f"--force must be three finite numbers FX,FY,FZ, got {push!r}")
+    if push_at is None:
+        push_at = 3.0
+    if push_for <= 0:
+        raise ValueError(f"--for must be positive, got {push_for}")
     params = scenario.default_params()
     if params_file is not None:
         params = apply_overrides(params, load_overrides(params_file), str(params_file))
@@ -52,15 +61,24 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")
-    cfg = RunConfig(duration=duration, control_dt=control_dt, barrier_on=barrier, settle=settle)
+    cfg = RunConfig(duration=duration, control_dt=control_dt, barrier_on=barrier, settle=settle,
+                    record_qps_every=record_qps_every, speed=speed,
+                    push_force=None if push is None else tuple(float(f) for f in push),
+                    push_at=push_at, push_for=push_for)
     log, info = run(scenario, params, cfg,
                     progress=None if quiet else lambda k, n: say(f"[safewbc] step {k}/{n}"))
     metrics = summarize(log, info, name, control_dt)
     metrics["barrier_on"] = bool(barrier)
+    if push is not None:
+        metrics["push"] = {"force_N": list(cfg.push_force), "at_s": push_at, "for_s": push_for}
     metrics["threshold"] = {k: float(v) for k, v in params.threshold.items()}
     metrics["poles"] = {k: np.asarray(v).tolist() for k, v in params.poles.items()}
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    np.savez_compressed(out_dir / "log.npz", **{k: v for k, v in log.items() if v.dtype != object})
+    qps = {k: v for k, v in log.items() if k.startswith("qp_")}
+    np.savez_compressed(out_dir / "log.npz", **{k: v for k, v in log.items()
+                                                 if v.dtype != object and k not in qps})
+    if qps:
+        np.savez_compressed(out_dir / "qps.npz", **qps)
     labels = {o.name: list(o.labels) for o in scenario.outputs}
     plots.output_figures(log, info, labels, out_dir)
     plots.barrier_figure(log, info, out_dir, f"{name}: barrier values"
@@ -85,6 +103,11 @@ def format_summary(m: dict) -> str:
     if m["barrier_min"]:
         lines.append("  barrier min h: " + ", ".join(f"{k} {v * 1000:+.1f} mm"
                                                      for k, v in m["barrier_min"].items()))
+    if "avg_forward_speed" in m:
+        lines.append(f"  walking: avg forward speed {m['avg_forward_speed']:.3f} m/s, steps "
+                     f"{m['steps_taken']}, leg collisions {m['leg_collisions']}, swing clearance "
+                     f"min {m['swing_clearance_min'] * 1000:.1f} mm, missed touchdowns "
+                     f"{m['missed_touchdowns']}")
     lines.append(f"  ZMP margin min {m['zmp_margin_min'] * 1000:.1f} mm, foot slip max "
                  f"{m['foot_slip_max'] * 1000:.2f} mm, torque ratio max {m['torque_ratio_max']:.2f}, "
                  f"loop residual max {m['loop_residual_max'] * 1000:.3f} mm")

@@ -40,9 +40,19 @@ class Scenario:
     settle: float = 1.5
     blend: float = 1.0
     in_contact: tuple = (1.0, 1.0)
+    # Hooks of domain-driven scenarios (walking); None for the double-support ones.
+    desired_fn: Callable | None = None    # (model, tau, start, q, v, domain) -> like desired
+    weight_mask: Callable | None = None   # domain -> {output name: (dim,) 0/1}
+    passive_actuators: Callable | None = None  # (model, domain) -> (nu,) 1 = zero torque
 
     def output(self, name):
         return next(o for o in self.outputs if o.name == name)
+
+    def desired_at(self, model, tau, start, q, v, domain):
+        """References of this control step (walking plans them from the state)."""
+        if self.desired_fn is not None:
+            return self.desired_fn(model, tau, start, q, v, domain)
+        return self.desired(tau, start)
 
     def desired(self, tau, start):
         """{name: (y^d, y^d_dot, y^d_ddot)} at tau, with the settle blend for tau < 0."""
@@ -72,7 +82,7 @@ def _default_params(barrier_names=()):
     return make_params(
         {"com": (3, [100.0, 100.0, 100.0], [20.0, 20.0, 20.0], [100.0, 100.0, 100.0]),
          "torso": (3, 100.0, 20.0, 10.0),
-         "arms": (8, 100.0, 20.0, 1.0)},
+         "arms": (8, 900.0, 60.0, 1.0)},  # stiff enough to beat the joints' friction loss
         {n: (ARM_POLES, ARM_THRESHOLD) for n in barrier_names})
 
 
@@ -103,16 +113,20 @@ class SafeSet:
     name: str
     h: Callable
     relative_degree: int = 2
+    active: Callable | None = None   # domain -> 1.0 where the barrier applies (None: always)
 
-    def h_fn(self, model, threshold):
+    def h_fn(self, model, threshold, domain=None):
         """The barrier as ``barriers`` takes it: h_fn(q) or h_fn(q, v)."""
         if self.relative_degree == 2:
-            return lambda q: self.h(model, q, threshold)
-        return lambda q, v: self.h(model, q, v, threshold)
+            return lambda q: self.h(model, q, threshold, domain)
+        return lambda q, v: self.h(model, q, v, threshold, domain)
+
+    def is_active(self, domain):
+        return 1.0 if self.active is None else self.active(domain)
 
 
 def _fist_height(side):
-    def h(model, q, threshold):
+    def h(model, q, threshold, domain=None):
         from safewbc_jax import robot
 
         return -robot.frame_position_in(model, q, f"{side}-fist", "torso")[2] - threshold
@@ -136,9 +150,19 @@ SCENARIOS = {
 }
 
 
-def get_scenario(name: str) -> Scenario:
+WALKING = ("walk", "push")
+
+
+def get_scenario(name: str, barrier: bool = True) -> Scenario:
+    """A scenario by name; ``barrier`` only matters for the walking ones, whose swing-foot
+    barrier is monitored instead of enforced when False."""
+    if name in WALKING:
+        from safewbc_jax import walking
+
+        return walking.make_scenario(name, 20.0 if name == "walk" else 8.0, barrier)
     if name not in SCENARIOS:
-        raise ValueError(f"unknown scenario {name!r}; available: {', '.join(SCENARIOS)}")
+        raise ValueError(f"unknown scenario {name!r}; available: "
+                         f"{', '.join(list(SCENARIOS) + list(WALKING))}")
     return SCENARIOS[name]
 
 

@@ -470,7 +470,7 @@ def test_fixed_shapes_jit_and_vmap(ctrl_mj, rm, jit):
     batched = jax.jit(jax.vmap(contacts.contact_inequalities,
                                in_axes=(None, 0, 0, None, None, None, None)))
     g, h, soft = batched(rm, jnp.asarray(np.stack(qs)), modes, MU, GAMMA, F_MIN, 0.01)
-    assert g.shape == (4, 22, 12) and h.shape == (4, 22) and soft.shape == (4, 22)
+    assert g.shape == (4, 30, 12) and h.shape == (4, 30) and soft.shape == (4, 30)
     for i in range(4):
         gi, hi, si = jit["ineq"](rm, jnp.asarray(qs[i]), modes[i], MU, GAMMA, F_MIN, 0.01)
         np.testing.assert_allclose(g[i], gi, atol=1e-12)
@@ -490,3 +490,25 @@ def test_torque_limit_bounds(ctrl_mj, rm):
     np.testing.assert_allclose(ub, ref, atol=0)
     np.testing.assert_allclose(lb, -ref, atol=0)
     assert lb.shape == (rm.nu,) and np.all(np.asarray(ub) > 0)
+
+
+def test_cop_rows_against_direct_evaluation():
+    """Per-foot centre of pressure rows: satisfied iff -m_y/f_z and m_x/f_z lie inside the
+    sole rectangle shrunk by the margin; rows of a foot in the air are 0 <= 1."""
+    rng = np.random.default_rng(11)
+    margin = 0.01
+    for in_contact in ((1.0, 1.0), (1.0, 0.0), (0.0, 1.0)):
+        g, h = contacts.cop_rows(jnp.asarray(in_contact), margin)
+        for _ in range(300):
+            lam = rng.normal(0, 1, 12)
+            lam[[2, 8]] = rng.uniform(5, 100, 2)
+            cop = rng.uniform(-0.2, 0.2, (2, 2))
+            for i in range(2):
+                lam[6 * i + 3] = cop[i, 1] * lam[6 * i + 2]    # m_x = y f_z
+                lam[6 * i + 4] = -cop[i, 0] * lam[6 * i + 2]   # m_y = -x f_z
+            inside = [(abs(cop[i, 0]) <= contacts.SOLE_LENGTH / 2 - margin)
+                      and (abs(cop[i, 1]) <= contacts.SOLE_WIDTH / 2 - margin) for i in range(2)]
+            ok = np.asarray(g) @ lam <= np.asarray(h) + 1e-12
+            for i in range(2):
+                rows = ok[4 * i:4 * i + 4]
+                assert rows.all() == (inside[i] or not in_contact[i])

@@ -36,8 +36,8 @@ def test_qp_shapes_and_soft_rows(arms_qp, rm):
     qpm, _ = arms_qp
     n = rm.nv + rm.nu + 22
     assert qpm.P.shape == (n, n) and qpm.A.shape == (rm.nv + 22, n)
-    assert qpm.G.shape == (22 + 1, n)  # friction/torsion 14, ZMP 8, one barrier row
-    np.testing.assert_array_equal(qpm.soft, [0] * 14 + [1] * 9)
+    assert qpm.G.shape == (30 + 1, n)  # friction/torsion 14, CoP 8, ZMP 8, one barrier row
+    np.testing.assert_array_equal(qpm.soft, [0] * 14 + [1] * 17)
     np.testing.assert_allclose(qpm.P, qpm.P.T, atol=1e-12)
     assert np.all(np.linalg.eigvalsh(qpm.P) > 0)
 

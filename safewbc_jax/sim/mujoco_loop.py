@@ -35,6 +35,11 @@ class RunConfig:
     control_dt: float = 1e-3           # s
     barrier_on: bool = True
     settle: float | None = None        # s of standing before the motion (scenario default)
+    record_qps_every: int = 0          # keep every k-th QP (full matrices) in the log; 0: none
+    speed: float = 0.2                 # walking: commanded forward speed (m/s)
+    push_force: tuple | None = None    # (FX, FY, FZ) N on the torso, world frame
+    push_at: float = 2.0               # s after the motion starts
+    push_for: float = 0.15             # s
 
 
 class CompiledController:
@@ -60,18 +65,18 @@ class CompiledController:
         self.last_u = None
         self._fn = {}
 
-    def _compiled(self, barrier_on, params, q, v, tau, start, in_contact):
+    def _compiled(self, barrier_on, params, q, v, tau, start, in_contact, domain):
         key = bool(barrier_on)
         if key not in self._fn:
             model, scenario = self.model, self.scenario
 
-            def full(params, q, v, tau, start, in_contact):
-                terms = controller.robot_terms(model, scenario, q, v)
+            def full(params, q, v, tau, start, in_contact, domain):
+                terms = controller.robot_terms(model, scenario, q, v, domain)
                 return controller.build_qp(model, scenario, params, terms, q, v, tau, start,
-                                           in_contact, barrier_on=key)
+                                           in_contact, barrier_on=key, domain=domain)
 
             full_jit = jax.jit(full)
-            qp0, _ = full_jit(params, q, v, tau, start, in_contact)
+            qp0, _ = full_jit(params, q, v, tau, start, in_contact, domain)
             bounded = reduce.bounded_variables(qp0, model.nv, model.nu)
             self._bounded = bounded
             if self.reduce_on == "host":
@@ -79,24 +84,24 @@ class CompiledController:
                 packed = jax.jit(lambda *a: packer.pack(full(*a)))
                 self._fn[key] = lambda *a: packer.unpack(packed(*a))
             else:
-                def step(params, q, v, tau, start, in_contact):
-                    qpm, aux = full(params, q, v, tau, start, in_contact)
+                def step(params, q, v, tau, start, in_contact, domain):
+                    qpm, aux = full(params, q, v, tau, start, in_contact, domain)
                     red, rmap = reduce.eliminate_equalities(qpm, model.nv, model.nu, bounded)
                     return qpm, red, rmap, aux
 
                 self._fn[key] = jax.jit(step)
         return self._fn[key]
 
-    def step(self, params, q, v, tau, start, in_contact, barrier_on=True):
+    def step(self, params, q, v, tau, start, in_contact, barrier_on=True, domain=None):
         """One control step: (u, X or None, info, aux, (t_qp, t_solve) in us)."""
-        fn = self._compiled(barrier_on, params, q, v, tau, start, in_contact)
+        fn = self._compiled(barrier_on, params, q, v, tau, start, in_contact, domain)
         t0 = time.perf_counter()
         if self.reduce_on == "host":
-            qpm, aux = fn(params, q, v, tau, start, in_contact)
+            qpm, aux = fn(params, q, v, tau, start, in_contact, domain)
             if self.reduced:
                 red, rmap = reduce.eliminate_equalities_np(qpm, self.nv, self.nu, self._bounded)
         else:
-            qpm, red, rmap, aux = fn(params, q, v, tau, start, in_contact)
+            qpm, red, rmap, aux = fn(params, q, v, tau, start, in_contact, domain)
             qpm = jax.tree_util.tree_map(np.asarray, qpm)
             red, rmap = jax.tree_util.tree_map(np.asarray, (red, rmap))
         if self.reduced:
@@ -115,13 +120,36 @@ class CompiledController:
                 info["eq_residual"] = float(np.max(np.abs(qpm.A @ x - qpm.b)))
         else:
             u = self.last_u if self.last_u is not None else np.zeros(self.nu)
+        self.last_qp = qpm
         return u, x, info, aux, ((t1 - t0) * 1e6, (t2 - t1) * 1e6)
+
+
+def _floor_and_leg_contacts(ms, d, sole_geoms, floor_geom, leg_geoms):
+    """Normal force (N) of each sole on the floor, and whether any geom of one leg touches
+    one of the other leg."""
+    import mujoco
+
+    force = {"left": 0.0, "right": 0.0}
+    legs = False
+    f6 = np.zeros(6)
+    for i in range(d.ncon):
+        c = d.contact[i]
+        pair = {int(c.geom1), int(c.geom2)}
+        for side, g in sole_geoms.items():
+            if pair == {g, floor_geom}:
+                mujoco.mj_contactForce(ms, d, i, f6)
+                force[side] += abs(f6[0])
+        if (pair & leg_geoms["left"]) and (pair & leg_geoms["right"]):
+            legs = True
+    return {**force, "legs": legs}
 
 
 def check_barrier_poles(model, scenario, params, q, v):
     """Theorem 1 at the start state, before anything compiles: raises barriers.PoleError
     naming the barrier, the pole and its bound."""
     for b in scenario.barriers:
+        if b.active is not None:
+            continue  # checked when its domain starts (walking)
         eta0 = barriers.barrier_lie_derivatives(b.h_fn(model, params.threshold[b.name]), q, v,
                                                 b.relative_degree)[0]
         barriers.check_poles(b.name, np.asarray(eta0), np.asarray(params.poles[b.name]))
@@ -155,6 +183,19 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         check_barrier_poles(model, scenario, params, q0, v0)
     start = start_state(model, q0)
     start["y0"] = controller.output_start_values(model, scenario, q0)
+    walking = scenario.desired_fn is not None
+    gait = None
+    if walking:
+        from safewbc_jax.walking import Gait
+
+        start["settle"], start["blend"] = jnp.asarray(settle), jnp.asarray(scenario.blend)
+        pl, _ = robot.frame_pose(model, q0, "left-sole")
+        start["half_width"] = pl[1] - start["origin"][1]
+        gait = Gait(v_des=cfg.speed)
+    sole_geoms = {s: ms.geom(f"{s}-sole").id for s in ("left", "right")}
+    floor_geom = ms.geom("floor").id
+    leg_geoms = {s: {g for g in range(ms.ngeom) if ms.geom(g).name.startswith(s)
+                     and ms.geom(g).name.endswith("-collision")} for s in ("left", "right")}
     ctl = CompiledController(model, scenario)
     in_contact = jnp.asarray(scenario.in_contact)
     ctrl_lo, ctrl_hi = ms.actuator_ctrlrange[:, 0], ms.actuator_ctrlrange[:, 1]
@@ -166,7 +207,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     names = [o.name for o in scenario.outputs]
     log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_qp",
                            "t_solve", "zmp_margin", "eq_residual", "slip", "loop_residual", "base_z",
-                           "lambda", "qpos")}
+                           "lambda", "qpos", "stance", "leg_contact", "clearance",
+                           "missed_touchdowns")}
     for nm in names:
         log[f"y_{nm}"], log[f"yd_{nm}"] = [], []
     hnames = [b.name for b in scenario.barriers + scenario.monitors]
@@ -175,14 +217,19 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     fell = False
     zmp_fn = jax.jit(partial(contacts.zmp_margin, model))
     nc_chain = controller.n_chain_rows(model)
+    recorded = []
     compile_t0 = time.perf_counter()
     compile_s = 0.0
     for k in range(n_steps):
         t = k * cfg.control_dt
         tau = t - settle
         q, v = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
+        domain = gait.domain() if walking else None
         u, x, info, aux, (tq, ts) = ctl.step(params, q, v, jnp.asarray(tau), start,
-                                                 in_contact, barrier_on=cfg.barrier_on)
+                                                 in_contact, barrier_on=cfg.barrier_on,
+                                                 domain=domain)
+        if cfg.record_qps_every and k % cfg.record_qps_every == 0:
+            recorded.append((k, ctl.last_qp, int(info["status"]), info["fallback"]))
         if k == 0:
             compile_s = time.perf_counter() - compile_t0
         d.ctrl[:] = np.clip(sm.to_ctrl(u), ctrl_lo, ctrl_hi)
@@ -199,8 +246,22 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
             log[f"y_{nm}"].append(np.asarray(ya)), log[f"yd_{nm}"].append(np.asarray(yd))
         for hn in hnames:
             log[f"h_{hn}"].append(float(aux["barrier_h"][hn]))
+        push_on = (cfg.push_force is not None and cfg.push_at <= tau < cfg.push_at + cfg.push_for)
+        d.xfrc_applied[base_id, :3] = cfg.push_force if push_on else 0.0
         for _ in range(n_sub):
             mujoco.mj_step(ms, d)
+        contacts_now = _floor_and_leg_contacts(ms, d, sole_geoms, floor_geom, leg_geoms)
+        soles = {s: d.site_xpos[ms.site(f"{s}-sole").id].copy() for s in ("left", "right")}
+        log["leg_contact"].append(contacts_now["legs"])
+        log["clearance"].append(float(soles["left"][1] - soles["right"][1]))
+        if walking:
+            swing = "right" if gait.stance > 0 else "left"
+            gait.update(tau, cfg.control_dt, soles, contacts_now[swing] > 0.2 * 9.81 * model.total_mass)
+            log["stance"].append(gait.stance)
+            log["missed_touchdowns"].append(gait.missed_touchdowns)
+        else:
+            log["stance"].append(0.0)
+            log["missed_touchdowns"].append(0)
         slip = np.linalg.norm(np.array([d.site_xpos[i][:2] for i in sole_ids]) - sole0, axis=1)
         log["slip"].append(slip.max()), log["loop_residual"].append(sim_loop_residual(ms, d))
         log["base_z"].append(float(d.xpos[base_id][2]))
@@ -212,7 +273,15 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
             progress(k, n_steps)
     arrays = {k: np.asarray(v) for k, v in log.items()}
     arrays["compile_s"] = np.asarray(compile_s)
+    if recorded:
+        fields = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
+        for f in fields:
+            arrays[f"qp_{f}"] = np.stack([np.asarray(getattr(r[1], f)) for r in recorded])
+        arrays["qp_step"] = np.array([r[0] for r in recorded])
+        arrays["qp_status"] = np.array([r[2] for r in recorded])
+        arrays["qp_fallback"] = np.array([r[3] for r in recorded])
     return arrays, dict(fell=fell, settle=settle, duration=duration, n_sub=n_sub,
+                        steps_taken=gait.steps if walking else 0, walking=walking,
                         sim_dt=float(ms.opt.timestep), torque_limit=np.asarray(model.torque_limit),
                         outputs=names, barriers=[b.name for b in scenario.barriers],
                         monitors=[b.name for b in scenario.monitors])

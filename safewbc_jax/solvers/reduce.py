@@ -55,10 +55,37 @@ def eliminate_equalities(qp: QP, nv: int, nu: int, bounded=np.zeros(0, int)) -> 
 def eliminate_equalities_np(qp: QP, nv: int, nu: int, bounded=np.zeros(0, int)) -> tuple[QP, Reduction]:
     """The same computation in numpy/scipy, for the single-robot path (a handful of
     LAPACK calls on the host cost less than their XLA CPU dispatch)."""
-    import scipy.linalg as sl
-
     qp = QP(*(np.asarray(getattr(qp, f)) for f in ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")))
-    return _eliminate(qp, nv, nu, bounded, np, sl)
+    return _eliminate(qp, nv, nu, bounded, np, _ScipyFast)
+
+
+class _ScipyFast:
+    """scipy.linalg's factorisations without their input checks (the inputs come from the
+    jitted assembly; a non-finite QP is caught by the solver's acceptance checks)."""
+
+    @staticmethod
+    def cho_factor(a, lower=True):
+        import scipy.linalg as sl
+
+        return sl.cho_factor(a, lower=lower, check_finite=False)
+
+    @staticmethod
+    def cho_solve(c, b):
+        import scipy.linalg as sl
+
+        return sl.cho_solve(c, b, check_finite=False)
+
+    @staticmethod
+    def lu_factor(a):
+        import scipy.linalg as sl
+
+        return sl.lu_factor(a, check_finite=False)
+
+    @staticmethod
+    def lu_solve(lu, b):
+        import scipy.linalg as sl
+
+        return sl.lu_solve(lu, b, check_finite=False)
 
 
 def _eliminate(qp: QP, nv, nu, bounded, xp, linalg):

@@ -1,0 +1,254 @@
+"""ALIP walking: the single-support domain of the paper's walking task, its outputs and
+references, and the gait state that switches domains.
+
+Paper, "Task: Walking with the A-LIP template model": in single support the outputs are
+z_CoM = H, the torso held vertical, the swing foot's position following
+p^d_swing(tau) towards the ALIP foot placement (u_x, u_y), and the swing foot kept flat
+(eq. yALIP); here the arms are held too. Before walking the robot stands (double support,
+the CoM blended to the walking height). The planner is ``alip.plan_foot_placement``,
+re-planned at every control step from the measured state.
+
+The gait state ("domain") is data, not structure: stance side (+1 left, -1 right, 0 both
+feet), contact flags, time in the step, where the feet were when the step began, the
+heading and the commands. One compiled controller serves every domain, which the batched
+path needs.
+
+The stance ankle is passive, as the ALIP requires (L_dot = m g p only holds with no ankle
+torque): in the QP the stance leg's two ankle motors (toe-A, toe-B, which drive the ankle
+pitch and roll through the rods) get the bounds 0 <= u <= 0 (``passive_actuators``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from safewbc_jax import alip, outputs, references, robot, scenarios
+from safewbc_jax.params import make_params
+
+H_WALK = 0.9            # CoM height (m), paper
+STEP_T = 0.35           # step period (s), paper
+STEP_WIDTH = 0.22       # commanded lateral foot-to-foot distance (m): the stand pose's
+SWING_MARGIN = 0.07     # collision barrier h = y_sw - 0.07 (paper)
+SWING_POLES = (20.0, 20.0)
+# Gait start: before the first (left-stance) step the CoM is moved over the inside edge of
+# the left foot, this far (m) to the right of the sole centre, so that the passive-ankle
+# pendulum starts near its orbit instead of falling from the middle of the feet.
+START_SHIFT = 0.04
+# Reach of the swing leg: the planned step vector is clipped to these bounds (m; lateral
+# distances are from the stance foot towards the swing side).
+STEP_X = (-0.30, 0.40)
+STEP_Y = (0.12, 0.45)
+LEFT, RIGHT, BOTH = 1.0, -1.0, 0.0
+
+
+def _swing_select(domain, left_val, right_val):
+    """The swing foot's value: in left stance the right foot swings."""
+    stance = domain["stance"]
+    return jnp.where(stance > 0, right_val, left_val)
+
+
+@dataclasses.dataclass(frozen=True)
+class SwingFootPosition(outputs.Output):
+    """p_swing(q): world position of the swinging sole (the foot opposite the stance)."""
+
+    name: str = "swing_pos"
+    dim = 3
+    labels = ("swing_x", "swing_y", "swing_z")
+
+    def value(self, model, q, domain=None):
+        pl = robot.frame_pose(model, q, "left-sole")[0]
+        pr = robot.frame_pose(model, q, "right-sole")[0]
+        return pl if domain is None else _swing_select(domain, pl, pr)
+
+    def evaluate(self, model, q, v, cache=None):
+        domain = cache["domain"]
+        left = outputs.FramePosition(frame="left-sole").evaluate(model, q, v)
+        right = outputs.FramePosition(frame="right-sole").evaluate(model, q, v)
+        return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
+
+
+@dataclasses.dataclass(frozen=True)
+class SwingFootOrientation(outputs.Output):
+    """theta_swing(q): Euler ZYX angles [roll, pitch, yaw] of the swinging sole."""
+
+    name: str = "swing_rot"
+    dim = 3
+    labels = ("swing_roll", "swing_pitch", "swing_yaw")
+
+    def value(self, model, q, domain=None):
+        left = outputs.FrameOrientation(frame="left-sole").value(model, q)
+        right = outputs.FrameOrientation(frame="right-sole").value(model, q)
+        return left if domain is None else _swing_select(domain, left, right)
+
+    def evaluate(self, model, q, v, cache=None):
+        domain = cache["domain"]
+        left = outputs.FrameOrientation(frame="left-sole").evaluate(model, q, v)
+        right = outputs.FrameOrientation(frame="right-sole").evaluate(model, q, v)
+        return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
+
+
+def _heading_lateral(model, q, domain):
+    """Lateral distance of the swing sole from the stance sole in the heading frame,
+    signed positive when the feet are apart (either stance side)."""
+    pl = robot.frame_pose(model, q, "left-sole")[0]
+    pr = robot.frame_pose(model, q, "right-sole")[0]
+    d = alip.world_to_heading((pl - pr)[:2], domain["heading"])  # left foot from right
+    return d[1]  # > 0 when the left foot is to the left of the right one
+
+
+def swing_clearance_h(model, q, threshold, domain):
+    """Paper, "Task: Collision avoidance": h_ALIP(q) = y_sw(q) - 0.07 >= 0, y_sw the lateral
+    position of the swing foot relative to the stance foot, signed so that it is positive
+    when the feet are apart whichever foot swings."""
+    return _heading_lateral(model, q, domain) - threshold
+
+
+def _single_support(domain):
+    return jnp.abs(domain["stance"])
+
+
+def swing_barrier():
+    return scenarios.SafeSet("swing_foot", lambda m, q, c, d: swing_clearance_h(m, q, c, d), 2,
+                             active=_single_support)
+
+
+def weight_mask(domain):
+    """Outputs by domain: CoM x, y only standing; swing outputs only in single support."""
+    ss = _single_support(domain)
+    return {"com": jnp.stack([1.0 - ss, 1.0 - ss, jnp.ones_like(ss)]),
+            "swing_pos": ss * jnp.ones(3), "swing_rot": ss * jnp.ones(3)}
+
+
+def passive_actuators(model, domain):
+    """1 for the stance leg's ankle motors (toe-A, toe-B): the passive stance ankle."""
+    left = np.array([n in ("left-toe-A", "left-toe-B") for n in model.actuator_names], float)
+    right = np.array([n in ("right-toe-A", "right-toe-B") for n in model.actuator_names], float)
+    stance = domain["stance"]
+    return jnp.where(stance > 0, left, 0.0) + jnp.where(stance < 0, right, 0.0)
+
+
+def desired(model, tau, start, q, v, domain):
+    """References of one control step: standing (tau < 0) blends the CoM to
+    [stance origin, H]; walking plans the foot placement from the measured ALIP state and
+    follows the paper's swing reference."""
+    heading = domain["heading"]
+    out = {}
+
+    # Standing: CoM over the inside of the first stance foot at the walking height.
+    def com_ref(s):
+        target = jnp.concatenate([start["origin"][:2] + jnp.array([0.0, start["half_width"]
+                                                                   - START_SHIFT]),
+                                  jnp.array([H_WALK])])
+        y0 = start["y0"]["com"]
+        return y0 + (target - y0) * references.smoothstep5((s + start["settle"]) / start["blend"])
+
+    out["com"] = references.with_derivatives(com_ref, jnp.minimum(tau, 0.0))
+    zero3 = jnp.zeros(3)
+    out["torso"] = (jnp.array([0.0, 0.0, 1.0]) * heading, zero3, zero3)
+    out["arms"] = (start["arm0"], jnp.zeros(8), jnp.zeros(8))
+    out["swing_rot"] = (jnp.array([0.0, 0.0, 1.0]) * heading, zero3, zero3)
+
+    # Walking: ALIP plan about the stance sole.
+    stance = domain["stance"]
+    pl = robot.frame_pose(model, q, "left-sole")[0]
+    pr = robot.frame_pose(model, q, "right-sole")[0]
+    contact = jnp.where(stance > 0, pl, pr)
+    state = alip.alip_state_from_robot(model, q, v, contact, heading)
+    mass = jnp.sum(model.body_mass)
+    plan = alip.plan_foot_placement(state.p, state.L, domain["tau_step"], STEP_T, H_WALK, mass,
+                                    -model.gravity[2], domain["v_des"], domain["step_width"],
+                                    jnp.where(stance == 0, 1.0, stance))
+    side = jnp.where(stance == 0, 1.0, stance)  # +1: the swing foot goes to the right (-y)
+    u = jnp.stack([jnp.clip(plan.u[0], *STEP_X),
+                   -side * jnp.clip(-side * plan.u[1], *STEP_Y)])
+    p_sw0 = alip.world_to_heading((domain["swing0"] - domain["stance0"])[:2], heading)
+    sw = alip.swing_foot_reference(domain["tau_step"], STEP_T, p_sw0, u, z0=0.0)
+    base = domain["stance0"]
+    rot = lambda xy: alip.rotate_yaw(xy, heading)  # noqa: E731
+    pos = jnp.concatenate([base[:2] + rot(sw.pos[:2]), base[2:3] + sw.pos[2:3]])
+    vel = jnp.concatenate([rot(sw.vel[:2]), sw.vel[2:3]])
+    acc = jnp.concatenate([rot(sw.acc[:2]), sw.acc[2:3]])
+    out["swing_pos"] = (pos, vel, acc)
+    out["plan_u"] = u
+    return out
+
+
+def default_params():
+    return make_params(
+        {"com": (3, 100.0, 20.0, 100.0), "torso": (3, 100.0, 20.0, 20.0),
+         "arms": (8, 900.0, 60.0, 1.0), "swing_pos": (3, 900.0, 60.0, 100.0),
+         "swing_rot": (3, 400.0, 40.0, 10.0)},
+        {"swing_foot": (SWING_POLES, SWING_MARGIN)})
+
+
+def walk_outputs():
+    return (outputs.CoMPosition(), outputs.TorsoOrientation(),
+            outputs.JointPositions(name="arms", joints=outputs.ARM_JOINTS),
+            SwingFootPosition(), SwingFootOrientation())
+
+
+def make_scenario(name, duration, barrier):
+    bars = (swing_barrier(),) if barrier else ()
+    mons = () if barrier else (swing_barrier(),)
+    return scenarios.Scenario(
+        name, walk_outputs(), bars, mons, reference=None, default_params=default_params,
+        duration=duration, settle=1.5, blend=1.0, desired_fn=desired,
+        weight_mask=weight_mask, passive_actuators=passive_actuators)
+
+
+# --------------------------------------------------------------------------------------
+# The gait state machine (host side, MuJoCo loop)
+# --------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class Gait:
+    """Domain switching of the deployment loop. Walking starts at tau = 0 with the left
+    foot in stance; a step ends at touchdown of the swing foot: its contact is checked
+    from half the period on (an early touchdown ends the step early), and a late one keeps
+    the step going with the swing reference held at its landing point; after 2 T without
+    touchdown the switch is forced and counted as ``missed_touchdowns``."""
+
+    v_des: float = 0.2
+    step_width: float = STEP_WIDTH
+    heading: float = 0.0
+    stance: float = BOTH
+    tau_step: float = 0.0
+    stance0: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    swing0: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    steps: int = 0
+    missed_touchdowns: int = 0
+
+    def domain(self):
+        ic = {BOTH: (1.0, 1.0), LEFT: (1.0, 0.0), RIGHT: (0.0, 1.0)}[self.stance]
+        return {"stance": np.float64(self.stance), "in_contact": np.array(ic),
+                "tau_step": np.float64(self.tau_step), "stance0": self.stance0.copy(),
+                "swing0": self.swing0.copy(), "heading": np.float64(self.heading),
+                "v_des": np.float64(self.v_des), "step_width": np.float64(self.step_width)}
+
+    def update(self, tau, dt, sole_pos, swing_contact):
+        """Advance by one control step. sole_pos: {"left": (3,), "right": (3,)} measured;
+        swing_contact: whether the swinging sole touches the ground now. Returns True when
+        a new step began."""
+        if tau < 0:
+            return False
+        if self.stance == BOTH:
+            self._begin(LEFT, sole_pos)
+            return True
+        self.tau_step += dt
+        if (self.tau_step >= 0.5 * STEP_T and swing_contact) or self.tau_step >= 2 * STEP_T:
+            if not swing_contact:
+                self.missed_touchdowns += 1
+            self._begin(-self.stance, sole_pos)
+            self.steps += 1
+            return True
+        return False
+
+    def _begin(self, stance, sole_pos):
+        self.stance = stance
+        self.tau_step = 0.0
+        st, sw = ("left", "right") if stance == LEFT else ("right", "left")
+        self.stance0 = np.asarray(sole_pos[st], float).copy()
+        self.swing0 = np.asarray(sole_pos[sw], float).copy()
