@@ -36,20 +36,15 @@ def main(argv=None) -> dict:
     import mujoco
     import numpy as np
 
-    from safewbc_jax import controller, paths, robot, scenarios, statemap
+    from safewbc_jax import controller, scenarios
+    from safewbc_jax.sim.mujoco_loop import load_at_stand
     from safewbc_jax.packing import Packer
     from safewbc_jax.solvers import reduce
     from safewbc_jax.solvers.piqp_path import PiqpSolver
 
     sc = scenarios.get_scenario(args.scenario)
     params = sc.default_params()
-    ms = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
-    mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
-    model = robot.from_mujoco(mc)
-    sm = statemap.build_state_map(ms, mc)
-    d = mujoco.MjData(ms)
-    mujoco.mj_resetDataKeyframe(ms, d, ms.key("stand").id)
-    mujoco.mj_forward(ms, d)
+    ms, _, model, sm, d = load_at_stand()
     q0, _ = sm.to_controller(d.qpos, d.qvel)
     start = scenarios.start_state(model, jnp.asarray(q0))
     start["y0"] = controller.output_start_values(model, sc, jnp.asarray(q0))

@@ -10,7 +10,6 @@ torque held when even the fallback fails.
 
 from __future__ import annotations
 
-import time
 from typing import NamedTuple
 
 import jax

@@ -40,3 +40,22 @@ def random_state(m, rng, spread=0.4):
     q[7:] += rng.uniform(-spread, spread, m.nq - 7)
     v = rng.normal(0, 1.0, m.nv)
     return q, v
+
+
+def mj_integrate(m, q, v, dt=1.0):
+    """MuJoCo's own mj_integratePos (independent of safewbc_jax.spatial.integrate)."""
+    import mujoco
+
+    out = np.array(q, dtype=float)
+    mujoco.mj_integratePos(m, out, np.asarray(v, float), dt)
+    return out
+
+
+def trajectory_point(m, q0, v0, a, t, substeps=400):
+    """(q, v) at time t under q_ddot = a (constant) from (q0, v0), integrated with
+    mj_integratePos in small midpoint steps: the reference trajectory of the drift tests."""
+    q = np.array(q0, float)
+    h = t / substeps
+    for i in range(substeps):
+        q = mj_integrate(m, q, v0 + a * (i + 0.5) * h, h)
+    return q, v0 + a * t

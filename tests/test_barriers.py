@@ -7,10 +7,9 @@ import mujoco
 import numpy as np
 import pytest
 import scipy.linalg
-from conftest import random_state
+from conftest import random_state, mj_integrate, trajectory_point
 
 from safewbc_jax import barriers as bf
-from safewbc_jax import robot
 
 THRESHOLD = 0.195
 
@@ -233,19 +232,6 @@ def test_relative_degree_one_velocity_barrier():
 # The fist-height barrier on Digit, by AD, against MuJoCo and finite differences
 # --------------------------------------------------------------------------------------
 
-def _integrate(m, q, v, dt=1.0):
-    out = np.array(q, dtype=float)
-    mujoco.mj_integratePos(m, out, np.asarray(v, float), dt)
-    return out
-
-
-def _trajectory_point(m, q0, v0, a, t, substeps=200):
-    """(q, v) at time t under q_ddot = a from (q0, v0), midpoint steps of mj_integratePos."""
-    q = np.array(q0, float)
-    h = t / substeps
-    for i in range(substeps):
-        q = _integrate(m, q, v0 + a * (i + 0.5) * h, h)
-    return q, v0 + a * t
 
 
 def _h_mujoco(m, q, side="left"):
@@ -323,8 +309,8 @@ def test_fist_barrier_row_against_finite_differences(ctrl_mj, rm, fist, robot_st
     for q0, v0 in robot_states:
         row = fist["row"](jnp.asarray(q0), jnp.asarray(v0), jnp.asarray(poles))
         eps = 1e-6
-        fd = np.array([(_h_mujoco(ctrl_mj, _integrate(ctrl_mj, q0, e))
-                        - _h_mujoco(ctrl_mj, _integrate(ctrl_mj, q0, -e))) / (2 * eps)
+        fd = np.array([(_h_mujoco(ctrl_mj, mj_integrate(ctrl_mj, q0, e))
+                        - _h_mujoco(ctrl_mj, mj_integrate(ctrl_mj, q0, -e))) / (2 * eps)
                        for e in eps * np.eye(rm.nv)])
         np.testing.assert_allclose(row.a_row, fd, atol=1e-8)
         assert np.abs(fd).max() > 0.1  # the barrier does depend on q
@@ -333,8 +319,8 @@ def test_fist_barrier_row_against_finite_differences(ctrl_mj, rm, fist, robot_st
 
         a = rng.normal(0.0, 2.0, rm.nv)
         eps = 1e-4
-        qp, vp = _trajectory_point(ctrl_mj, q0, v0, a, eps)
-        qm, vm = _trajectory_point(ctrl_mj, q0, v0, a, -eps)
+        qp, vp = trajectory_point(ctrl_mj, q0, v0, a, eps)
+        qm, vm = trajectory_point(ctrl_mj, q0, v0, a, -eps)
         j0 = np.asarray(jac(jnp.asarray(q0)))
         jdot_v = (np.asarray(jac(jnp.asarray(qp))) @ vp
                   - np.asarray(jac(jnp.asarray(qm))) @ vm) / (2 * eps) - j0 @ a
@@ -362,8 +348,8 @@ def test_relative_degree_one_row_against_finite_differences(ctrl_mj, rm, fist, r
     np.testing.assert_allclose(row.a_row, dv, atol=1e-9)
     assert np.count_nonzero(np.abs(dv) > 1e-3) == 4  # omega_body (3) and the elbow rate
     eps = 1e-5
-    lf = (hq(_integrate(ctrl_mj, q0, v0, eps), v0)
-          - hq(_integrate(ctrl_mj, q0, v0, -eps), v0)) / (2 * eps)
+    lf = (hq(mj_integrate(ctrl_mj, q0, v0, eps), v0)
+          - hq(mj_integrate(ctrl_mj, q0, v0, -eps), v0)) / (2 * eps)
     assert abs(lf) > 0.1
     assert float(row.drift) == pytest.approx(lf, rel=1e-7, abs=1e-9)
     assert float(row.eta[0]) == pytest.approx(hq(q0, v0), abs=1e-14)

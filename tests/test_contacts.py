@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import random_state
+from conftest import random_state, trajectory_point
 from scipy.spatial import ConvexHull
 
 from safewbc_jax import contacts, robot
@@ -405,19 +405,6 @@ def test_contact_jacobian_transpose_is_mujoco_generalized_force(ctrl_mj, rm, jit
                                        atol=1e-10 * max(1.0, np.abs(qfrc).max()))
 
 
-def _integrate(m, q, v, dt):
-    out = np.array(q, dtype=float)
-    mujoco.mj_integratePos(m, out, np.asarray(v, float), dt)
-    return out
-
-
-def _trajectory_point(m, q0, v0, a, t, substeps=400):
-    """State at time t under q_ddot = a, by midpoint steps of mj_integratePos."""
-    q = np.array(q0, float)
-    h = t / substeps
-    for i in range(substeps):
-        q = _integrate(m, q, v0 + a * (i + 0.5) * h, h)
-    return q, v0 + a * t
 
 
 def test_contact_drift_against_finite_differences(ctrl_mj, rm, jit):
@@ -427,8 +414,8 @@ def test_contact_drift_against_finite_differences(ctrl_mj, rm, jit):
     for _ in range(2):
         q0, v0 = random_state(ctrl_mj, rng)
         a = rng.normal(0, 2.0, rm.nv)
-        qp, vp = _trajectory_point(ctrl_mj, q0, v0, a, eps)
-        qm, vm = _trajectory_point(ctrl_mj, q0, v0, a, -eps)
+        qp, vp = trajectory_point(ctrl_mj, q0, v0, a, eps)
+        qm, vm = trajectory_point(ctrl_mj, q0, v0, a, -eps)
         j0 = np.asarray(jit["sj"](rm, jnp.asarray(q0)))
         fd = (np.asarray(jit["sj"](rm, jnp.asarray(qp))) @ vp
               - np.asarray(jit["sj"](rm, jnp.asarray(qm))) @ vm) / (2 * eps) - j0 @ a

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import random_state
+from conftest import mj_integrate, random_state, trajectory_point
 
 from safewbc_jax import chains, robot, spatial
 
@@ -98,11 +98,8 @@ def _fd_jacobian(f, q, nv, eps=1e-6):
     return np.stack(cols, axis=-1)
 
 
-def _integrate(q, v, dt=1.0, m=None):
-    """MuJoCo's own mj_integratePos, independent of spatial.integrate."""
-    out = np.array(q, dtype=float)
-    mujoco.mj_integratePos(_integrate.model, out, np.asarray(v, float), dt)
-    return out
+def _integrate(q, v, dt=1.0):
+    return mj_integrate(_integrate.model, q, v, dt)
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -124,15 +121,8 @@ def test_position_jacobians_against_finite_differences(rm, states, jitted):
     np.testing.assert_allclose(jitted["nj"](rm, qj), fd, atol=1e-7)
 
 
-def _trajectory_point(q0, v0, a, t, substeps=400):
-    """State at time t of q_ddot = a (constant) from (q0, v0), integrated with MuJoCo's
-    mj_integratePos in small midpoint steps."""
-    q = np.array(q0, float)
-    h = t / substeps
-    for i in range(substeps):
-        vm = v0 + a * (i + 0.5) * h
-        q = _integrate(q, vm, h)
-    return q, v0 + a * t
+def _trajectory_point(q0, v0, a, t):
+    return trajectory_point(_integrate.model, q0, v0, a, t)
 
 
 def test_drift_terms_against_finite_differences_along_a_trajectory(rm, states, jitted):

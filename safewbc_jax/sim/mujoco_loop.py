@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from functools import partial
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -155,17 +154,24 @@ def check_barrier_poles(model, scenario, params, q, v):
         barriers.check_poles(b.name, np.asarray(eta0), np.asarray(params.poles[b.name]))
 
 
-def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None):
-    """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict)."""
+def load_at_stand():
+    """(simulation model, controller MjModel, RobotModel, StateMap, MjData at ``stand``)."""
     import mujoco
 
     ms = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
     mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
-    model = robot.from_mujoco(mc)
     sm = statemap.build_state_map(ms, mc)
     d = mujoco.MjData(ms)
     mujoco.mj_resetDataKeyframe(ms, d, ms.key("stand").id)
     mujoco.mj_forward(ms, d)
+    return ms, mc, robot.from_mujoco(mc), sm, d
+
+
+def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None):
+    """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict)."""
+    import mujoco
+
+    ms, mc, model, sm, d = load_at_stand()
     n_sub = int(round(cfg.control_dt / ms.opt.timestep))
     if n_sub < 1 or abs(n_sub * ms.opt.timestep - cfg.control_dt) > 1e-12:
         raise ValueError(f"control_dt {cfg.control_dt} must be a positive multiple of the "
