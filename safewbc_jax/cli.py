@@ -45,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     from safewbc_jax.scenarios import SCENARIOS
 
-    p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller")
+    p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller "
+                       "(walk and push are work in progress: the robot falls after a few steps)")
     p.add_argument("scenario", choices=sorted(SCENARIOS) + ["push", "walk"])
     p.add_argument("--speed", type=float, default=0.2, help="walk/push: forward speed (m/s)")
     p.add_argument("--force", default=None, help="push: FX,FY,FZ on the torso (N); "
