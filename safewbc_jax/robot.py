@@ -273,8 +273,12 @@ def forward_kinematics(model: RobotModel, q):
     xpos = jnp.zeros((nb, 3), q.dtype).at[0].set(q[0:3])
     for bodies, parents in _levels(model):
         prot = xrot[parents]
-        xrot = xrot.at[bodies].set(prot @ local[bodies])
-        xpos = xpos.at[bodies].set(xpos[parents] + jnp.einsum("nij,nj->ni", prot, model.body_pos[bodies]))
+        # Products written elementwise (multiply, then sum) rather than as dots: XLA fuses
+        # them with the gathers and scatters around them into a few kernels per level.
+        rot = jnp.sum(prot[:, :, :, None] * local[bodies][:, None, :, :], axis=2)
+        pos = xpos[parents] + jnp.sum(prot * model.body_pos[bodies][:, None, :], axis=-1)
+        xrot = xrot.at[bodies].set(rot)
+        xpos = xpos.at[bodies].set(pos)
     return xpos, xrot
 
 
