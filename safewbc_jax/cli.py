@@ -34,6 +34,57 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _compile_cache(args) -> None:
+    """Keep compiled XLA programs on disk (JAX's persistent compilation cache), so that a
+    resumed or repeated sweep skips the minutes of compiling the closed-loop step."""
+    import os
+
+    if getattr(args, "no_cache", False):
+        return
+    import jax
+
+    d = os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "safewbc-jax", "xla")
+    jax.config.update("jax_compilation_cache_dir", d)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def _cmd_sweep(args) -> int:
+    from pathlib import Path
+
+    from safewbc_jax.sweeps.run import run_sweep
+    from safewbc_jax.sweeps.spec import load_spec
+
+    spec = load_spec(args.spec)          # every check before anything compiles
+    _compile_cache(args)
+    r = run_sweep(spec, args.out, batch=args.batch, seed=args.seed,
+                  spec_text=Path(args.spec).read_text(), max_chunks=args.max_chunks)
+    rate = "" if r.chunks_run == 0 else f", {r.rollouts_per_s:.2f} rollouts/s"
+    print(f"sweep {args.out}: {r.chunks_skipped + r.chunks_run}/{r.chunks_total} chunks done "
+          f"({r.chunks_run} run now{rate}); table in {args.out}/chunks/*.parquet")
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from safewbc_jax.sweeps.report import make_report
+
+    r = make_report(args.dir, args.dest)
+    print(f"report of {r['rollouts']} rollouts: {r['summary']}"
+          + "".join(f"\n  {f}" for f in r["figures"]))
+    return 0
+
+
+def _cmd_tune_poles(args) -> int:
+    from safewbc_jax.sweeps.spec import load_spec
+    from safewbc_jax.sweeps.tune import tune_poles
+
+    spec = load_spec(args.spec)
+    _compile_cache(args)
+    r = tune_poles(spec, args.out, work=args.work, batch=args.batch, seed=args.seed)
+    print(r.summary())
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="safewbc", description=(
         "Safe whole-body task-space control of the humanoid Digit: an inverse-dynamics QP "
@@ -64,6 +115,37 @@ def build_parser() -> argparse.ArgumentParser:
                         "A real-time loop runs on one core: XLA's thread pool spread over "
                         "shared cores adds wake-up latency to every control step")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("sweep", help="run a sweep spec (sweeps/*.toml) as chunks of batched "
+                       "closed-loop rollouts into a Parquet table; a rerun resumes")
+    p.add_argument("spec", help="sweep spec TOML (see sweeps/)")
+    p.add_argument("--out", required=True, help="sweep directory (table, manifest)")
+    p.add_argument("--batch", type=int, default=None,
+                   help="rollouts per chunk (default: the spec's sweep.batch, else 64)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the perturbations (default: the spec's sweep.seed, else 0)")
+    p.add_argument("--max-chunks", type=int, default=None, help="stop after this many chunks")
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not use the on-disk XLA compilation cache")
+    p.set_defaults(func=_cmd_sweep)
+
+    p = sub.add_parser("report", help="figures and summary.md of a sweep directory")
+    p.add_argument("dir", help="sweep directory written by safewbc sweep")
+    p.add_argument("--dest", default=None, help="where to write (default: DIR)")
+    p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("tune-poles", help="search Theorem-1 admissible A-ECBF poles with "
+                       "successive refined sweeps; writes a params TOML for safewbc run --params")
+    p.add_argument("spec", help="sweep spec TOML: its scenario, pushes, perturbations and "
+                   "[tune] table")
+    p.add_argument("--out", required=True, help="params TOML to write")
+    p.add_argument("--work", default=None, help="folder of the rounds' sweep tables "
+                   "(default: OUT without .toml + '_rounds'); a rerun resumes there")
+    p.add_argument("--batch", type=int, default=None, help="rollouts per chunk")
+    p.add_argument("--seed", type=int, default=None, help="seed of the perturbations")
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not use the on-disk XLA compilation cache")
+    p.set_defaults(func=_cmd_tune_poles)
     return ap
 
 

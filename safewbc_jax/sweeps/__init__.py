@@ -1,0 +1,19 @@
+"""Sweeps over controller parameters and pushes with batched closed-loop rollouts.
+
+* :mod:`.spec`   sweep spec files (TOML): parsing, validation before anything compiles,
+                 the plan of rollouts (settings x repeats) and their inputs;
+* :mod:`.table`  the results table: one Parquet file per finished chunk, written
+                 atomically, read back as one table; the manifest that makes resume safe;
+* :mod:`.run`    ``safewbc sweep``: chunks of batched rollouts through
+                 ``safewbc_jax.batch.rollout.run_batch``;
+* :mod:`.stats`  Wilson score intervals for violation rates;
+* :mod:`.report` ``safewbc report``: figures and ``summary.md``;
+* :mod:`.tune`   ``safewbc tune-poles``: successive refined sweeps over Theorem-1
+                 admissible barrier poles, written as a params TOML.
+
+Nothing here imports JAX at module import time except :mod:`.run` and :mod:`.tune`
+(through their entry points), so validating a spec is instant.
+"""
+
+from safewbc_jax.sweeps.spec import SpecError, SweepSpec, load_spec  # noqa: F401
+from safewbc_jax.sweeps.stats import wilson_interval  # noqa: F401

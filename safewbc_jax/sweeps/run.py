@@ -1,0 +1,186 @@
+"""``safewbc sweep``: a spec's rollouts in chunks of batched closed-loop rollouts.
+
+Rollout k of a sweep is setting k // repeats (row-major over the grid axes) with
+perturbation draw k % repeats; its initial velocity perturbation comes from a generator
+seeded by (seed, k). Chunk c holds rollouts [c B, (c + 1) B); the last chunk is padded to
+B with copies of its last rollout (one compiled shape for the whole sweep) and the padding
+is dropped before writing. Finished chunks are Parquet files (see :mod:`.table`); a rerun
+skips them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from safewbc_jax.sweeps import spec as spec_mod
+from safewbc_jax.sweeps import table as table_mod
+from safewbc_jax.sweeps.spec import SweepSpec
+
+
+@dataclasses.dataclass
+class SweepResult:
+    out: Path
+    n_rollouts: int
+    chunks_total: int
+    chunks_run: int
+    chunks_skipped: int
+    wall_s: float
+    rollouts_per_s: float
+
+
+def real_executor():
+    """``safewbc_jax.batch.rollout.run_batch`` with its config class and Push."""
+    try:
+        from safewbc_jax.batch.rollout import BatchConfig, Push, run_batch
+    except ImportError as e:
+        raise RuntimeError(f"the batched rollout path is not available ({e}); sweeps need "
+                           "safewbc_jax.batch.rollout.run_batch") from None
+
+    def execute(spec: SweepSpec, params, push: dict, perturb_v: np.ndarray) -> dict:
+        cfg = BatchConfig(scenario=spec.scenario, barrier=spec.barrier, duration=spec.duration,
+                          settle=spec.settle, control_dt=spec.control_dt, decimate=0)
+        p = Push(force=np.stack([push["fx"], push["fy"], push["fz"]], axis=1),
+                 at=np.asarray(push["at"], float), duration=np.asarray(push["duration"], float))
+        metrics, _ = run_batch(cfg, params, p, perturb_v)
+        return metrics
+
+    return execute
+
+
+def sim_model():
+    import mujoco
+
+    from safewbc_jax import paths
+
+    return mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
+
+
+def chunk_inputs(spec: SweepSpec, base, settings: np.ndarray, rollouts: np.ndarray,
+                 seed: int, std: np.ndarray):
+    """Inputs of the rollouts ``rollouts`` (global indices): (params batch, push dict,
+    perturbation (len, nv), per-rollout columns to write)."""
+    setting = rollouts // spec.repeats
+    vals = settings[setting]
+    params = spec_mod.params_batch(base, spec.axes, vals)
+    push = spec_mod.push_arrays(spec, vals)
+    dv = spec_mod.perturbations(seed, rollouts, std, spec.noise_period)
+    cols = {"rollout": rollouts.astype(np.int64), "setting": setting.astype(np.int64),
+            "repeat": (rollouts % spec.repeats).astype(np.int64)}
+    for j, a in enumerate(spec.axes):
+        cols[a.name] = vals[:, j].astype(float)
+    for b in spec.barriers:
+        for i in range(spec.pole_counts[b]):
+            cols[f"poles.{b}.p{i + 1}"] = params.poles[b][:, i].copy()
+    for k in ("magnitude", "direction", "at", "duration", "fx", "fy", "fz"):
+        cols[f"push.{k}"] = push[k]
+    cols["perturb.norm"] = np.linalg.norm(dv, axis=1)
+    return params, push, dv, cols
+
+
+def _pad(x, b):
+    """Pad the leading axis of x to b rows with copies of its last row."""
+    x = np.asarray(x)
+    n = x.shape[0]
+    if n == b:
+        return x
+    return np.concatenate([x, np.repeat(x[-1:], b - n, axis=0)], axis=0)
+
+
+def _fmt_s(s: float) -> str:
+    if not np.isfinite(s):
+        return "?"
+    s = int(round(s))
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | None = None,
+              executor: Callable | None = None, progress: Callable | None = None,
+              spec_text: str | None = None, max_chunks: int | None = None,
+              check_poles: bool = True) -> SweepResult:
+    """Run (or resume) the sweep into ``out``. ``executor(spec, params, push, perturb_v)``
+    returns the metrics dict of a batch (default: the real ``run_batch``).
+    ``max_chunks`` stops after that many chunks of this call (for notebooks and tests)."""
+    out = Path(out)
+    batch = spec.batch if batch is None else int(batch)
+    seed = spec.seed if seed is None else int(seed)
+    if batch < 1:
+        raise ValueError(f"--batch must be >= 1, got {batch}")
+    if seed < 0:
+        raise ValueError(f"--seed must be >= 0, got {seed}")
+    say = progress if progress is not None else (
+        lambda msg: print(msg, file=sys.stderr, flush=True))
+    n = spec.n_rollouts
+    chunks = table_mod.plan_chunks(n, batch)
+    manifest = {"format": 1, "fingerprint": spec.fingerprint(), "seed": seed, "batch": batch,
+                "n_rollouts": n, "n_chunks": len(chunks), "scenario": spec.scenario,
+                "spec_path": spec.path, "axes": [a.name for a in spec.axes],
+                "barriers": list(spec.barriers), "monitors": list(spec.monitors),
+                "outputs": list(spec.outputs), "target": spec.target,
+                "violation_tol": spec.violation_tol, "repeats": spec.repeats,
+                "objective": list(spec.tune.get("objective", []))}
+    base = spec_mod.base_params(spec)
+    std = spec_mod.velocity_std(spec, sim_model())
+    settings = spec.settings_array()
+    if check_poles:
+        from safewbc_jax.sweeps.admissible import check_sweep
+
+        check_sweep(spec, base, settings, seed, std)   # Theorem 1, every rollout, no compile
+    table_mod.open_manifest(out, manifest, spec_text)
+    stale = table_mod.remove_partial(out)
+    if stale:
+        say(f"[sweep] removed {len(stale)} partial chunk file(s) of an interrupted run")
+    done = table_mod.finished_chunks(out)
+    extra = sorted(k for k in done if k >= len(chunks))
+    if extra:
+        raise table_mod.TableError(f"{out}: chunk files {extra} beyond the plan's {len(chunks)} "
+                                   "chunks; the directory was written by another plan")
+    todo = [k for k in range(len(chunks)) if k not in done]
+    if done:
+        say(f"[sweep] {out}: {len(done)}/{len(chunks)} chunks already done, "
+            f"{len(todo)} to run")
+    if not todo:
+        return SweepResult(out, n, len(chunks), 0, len(done), 0.0, float("nan"))
+    if max_chunks is not None:
+        todo = todo[:max_chunks]
+    execute = executor or real_executor()
+    t0 = time.perf_counter()
+    ran = 0
+    say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
+        f"in {len(chunks)} chunks of {batch}; the first chunk includes compilation")
+    for c, k in enumerate(todo):
+        start, stop = chunks[k]
+        rollouts = np.arange(start, stop)
+        params, push, dv, cols = chunk_inputs(spec, base, settings, rollouts, seed, std)
+        m = stop - start
+        if m < batch:
+            import jax
+
+            params = jax.tree_util.tree_map(lambda x: _pad(x, batch), params)
+            push = {kk: _pad(v, batch) for kk, v in push.items()}
+            dv = _pad(dv, batch)
+        metrics = execute(spec, params, push, dv)
+        for name, v in metrics.items():
+            v = np.asarray(v)
+            if v.shape[:1] != (batch,):
+                raise RuntimeError(f"run_batch returned metric {name!r} of shape {v.shape}, "
+                                   f"expected ({batch},)")
+            cols[name] = v[:m]
+        cols["chunk"] = np.full(m, k, np.int64)
+        table_mod.write_chunk(out, k, cols, {"chunk": k, "start": start, "stop": stop,
+                                            "seed": seed, "fingerprint": manifest["fingerprint"]})
+        ran += m
+        el = time.perf_counter() - t0
+        rate = ran / el
+        left = sum(chunks[j][1] - chunks[j][0] for j in todo[c + 1:])
+        total_done = sum(chunks[j][1] - chunks[j][0] for j in table_mod.finished_chunks(out))
+        say(f"[sweep] {total_done}/{n} rollouts  {rate:.2f} rollouts/s  "
+            f"ETA {_fmt_s(left / rate if rate > 0 else float('inf'))}  "
+            f"(chunk {k + 1}/{len(chunks)})")
+    el = time.perf_counter() - t0
+    return SweepResult(out, n, len(chunks), len(todo), len(done), el, ran / el if el > 0 else float("nan"))

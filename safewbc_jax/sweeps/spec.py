@@ -1,0 +1,569 @@
+"""Sweep spec files: parsing, validation and the plan of rollouts.
+
+A spec is a TOML file::
+
+    [sweep]
+    scenario = "arms"        # a scenario of the batched path
+    barrier = true           # enforce the scenario's A-ECBF rows
+    duration = 3.0           # seconds of motion (default: the scenario's)
+    settle = 1.5             # seconds standing before the motion (default: the scenario's)
+    repeats = 4              # rollouts per setting, each with its own perturbation
+    seed = 0                 # default seed (``--seed`` overrides)
+    batch = 64               # default rollouts per chunk (``--batch`` overrides)
+    violation_tol = 0.0      # a rollout violates barrier b when min h_b < -violation_tol
+    target = "left_fist"     # the barrier the report and tune-poles look at
+
+    [params]                 # fixed ControllerParams overrides, as in ``--params FILE``
+    mu = 0.6
+
+    [grid]                   # swept axes: the rollouts are their cartesian product
+    "poles.left_fist.p1" = [2.0, 5.0, 10.0]
+    "poles.left_fist.p2" = { logspace = [2.0, 40.0, 4] }
+
+    [push]                   # a push on the torso applied in every rollout (or sweep it:
+    magnitude = 0.0          #   "push.magnitude" etc. in [grid])
+    direction = 0.0          # degrees in the ground plane, 0 = +x (forward), 90 = +y (left)
+    at = 1.0                 # seconds after the motion starts
+    duration = 0.15          # seconds
+
+    [perturb]                # Gaussian initial velocity perturbation, one draw per rollout
+    base_linear = 0.0        # std of each base linear velocity component (m/s)
+    base_angular = 0.0       # std of each base angular velocity component (rad/s)
+    joints = 0.0             # std of each hinge joint rate (rad/s)
+
+    [tune]                   # used by ``safewbc tune-poles`` only
+    rounds = 3  points = 4  shrink = 0.5  pole_min = 0.5  pole_max = 200.0
+    objective = ["tracking_rms.arms"]
+
+Axis names in ``[grid]``:
+
+* ``poles.B`` (every pole of barrier B equal to the value), ``poles.B.p1`` .. ``poles.B.pr``;
+* ``threshold.B``;
+* ``kp.O``, ``kd.O``, ``weight.O`` (the same value on every component of output O);
+* ``kp_scale.O``, ``kd_scale.O``, ``weight_scale.O`` (factors on the defaults), and
+  ``gain_scale.O`` (K_p times s and K_d times sqrt(s): the damping ratio is kept);
+* the scalar parameters of :data:`safewbc_jax.params.SCALARS` (``mu``, ``f_min``, ...);
+* ``push.magnitude``, ``push.direction``, ``push.at``, ``push.duration``.
+
+Axis values are a non-empty list of numbers or one of ``{ values = [...] }``,
+``{ linspace = [start, stop, n] }``, ``{ logspace = [start, stop, n] }`` (the endpoints
+themselves, not their logarithms).
+
+:func:`load_spec` checks every key, type and value before anything is compiled and raises
+:class:`SpecError` naming the file, the key and the value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+SECTIONS = ("sweep", "params", "grid", "push", "perturb", "tune")
+SWEEP_KEYS = {"scenario": str, "barrier": bool, "duration": float, "settle": float,
+              "control_dt": float, "repeats": int, "seed": int, "batch": int,
+              "violation_tol": float, "target": str, "description": str}
+PUSH_KEYS = ("magnitude", "direction", "at", "duration")
+PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": 1.0, "duration": 0.15}
+PERTURB_KEYS = ("base_linear", "base_angular", "joints")
+TUNE_KEYS = {"rounds": int, "points": int, "shrink": float, "pole_min": float,
+             "pole_max": float, "objective": list, "barrier": str}
+TUNE_DEFAULTS = {"rounds": 3, "points": 4, "shrink": 0.5, "pole_min": 0.5, "pole_max": 200.0}
+GAIN_TABLES = ("kp", "kd", "weight")
+SCALES = ("kp_scale", "kd_scale", "weight_scale", "gain_scale")
+MAX_ROLLOUTS = 10_000_000
+
+
+class SpecError(ValueError):
+    """A sweep spec has an unknown key, a wrong type or a bad value."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Axis:
+    """One swept axis: ``name`` as written in ``[grid]``, its ``kind`` (poles, pole,
+    threshold, gain, scale, scalar, push), the ``target`` it acts on (barrier, output or
+    parameter name), the pole index for kind "pole", and the values."""
+
+    name: str
+    kind: str
+    target: str
+    values: tuple
+    index: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepSpec:
+    path: str
+    scenario: str
+    barrier: bool
+    duration: float | None
+    settle: float | None
+    control_dt: float
+    repeats: int
+    seed: int
+    batch: int
+    violation_tol: float
+    target: str | None          # barrier the report and tuning look at (None: no barrier)
+    description: str
+    params: dict                 # fixed overrides (params TOML form)
+    axes: tuple                  # of Axis, in file order (the first varies slowest)
+    push: dict                   # fixed push values (those not swept)
+    perturb: dict
+    tune: dict
+    barriers: tuple              # enforced barrier names of the scenario
+    monitors: tuple
+    outputs: tuple               # output names of the scenario
+    pole_counts: dict            # barrier name -> number of poles (relative degree)
+    rows: tuple | None = None    # explicit settings instead of the grid product
+    noise_period: int | None = None  # rollout k draws perturbation k % noise_period
+
+    @property
+    def n_settings(self) -> int:
+        if self.rows is not None:
+            return len(self.rows)
+        return int(np.prod([len(a.values) for a in self.axes])) if self.axes else 1
+
+    @property
+    def n_rollouts(self) -> int:
+        return self.n_settings * self.repeats
+
+    def fingerprint(self) -> str:
+        """Hash of everything that decides the rollouts (not the seed, batch, path or
+        description): a sweep directory holds one spec."""
+        d = {k: v for k, v in dataclasses.asdict(self).items()
+             if k not in ("path", "seed", "batch", "description", "tune")}
+        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+    def setting(self, index: int) -> dict:
+        """{axis name: value} of setting ``index`` (row-major over the axes)."""
+        if self.rows is not None:
+            return dict(zip((a.name for a in self.axes), self.rows[index]))
+        out = {}
+        for a in reversed(self.axes):
+            index, j = divmod(index, len(a.values))
+            out[a.name] = a.values[j]
+        return {a.name: out[a.name] for a in self.axes}
+
+    def settings_array(self) -> np.ndarray:
+        """(n_settings, n_axes) float array of every setting, row-major."""
+        if self.rows is not None:
+            return np.asarray(self.rows, float).reshape(len(self.rows), len(self.axes))
+        if not self.axes:
+            return np.zeros((1, 0))
+        grids = np.meshgrid(*[np.asarray(a.values, float) for a in self.axes], indexing="ij")
+        return np.stack([g.reshape(-1) for g in grids], axis=1)
+
+    def with_rows(self, axes: tuple, rows) -> "SweepSpec":
+        """A copy whose settings are the listed ``rows`` (one value per axis of ``axes``)
+        instead of the grid product (tune-poles sweeps such lists)."""
+        rows = tuple(tuple(float(x) for x in r) for r in rows)
+        if not rows or any(len(r) != len(axes) for r in rows):
+            raise ValueError("with_rows: every row needs one value per axis")
+        return dataclasses.replace(self, axes=tuple(axes), rows=rows)
+
+
+def _fmt(v) -> str:
+    return repr(v) if not isinstance(v, str) else json.dumps(v)
+
+
+def _number(src, key, value, *, positive=False, nonneg=False, integer=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        want = "an integer" if integer else "a number"
+        raise SpecError(f"{src}: {key} = {_fmt(value)}: expected {want}, got {type(value).__name__}")
+    if integer and not isinstance(value, int):
+        raise SpecError(f"{src}: {key} = {_fmt(value)}: expected an integer")
+    if not math.isfinite(value):
+        raise SpecError(f"{src}: {key} = {_fmt(value)}: not finite")
+    if positive and value <= 0:
+        raise SpecError(f"{src}: {key} = {_fmt(value)}: must be > 0")
+    if nonneg and value < 0:
+        raise SpecError(f"{src}: {key} = {_fmt(value)}: must be >= 0")
+    return int(value) if integer else float(value)
+
+
+def _axis_values(src, key, value) -> tuple:
+    """The values of one [grid] axis: a list, or {values|linspace|logspace = ...}."""
+    where = f"grid.{_quote(key)}"
+    if isinstance(value, dict):
+        if len(value) != 1 or next(iter(value)) not in ("values", "linspace", "logspace"):
+            raise SpecError(f"{src}: {where} = {_fmt(value)}: expected a list of numbers or one "
+                            "of {values = [...]}, {linspace = [start, stop, n]}, "
+                            "{logspace = [start, stop, n]}")
+        (form, arg), = value.items()
+        if form == "values":
+            return _axis_values(src, key, arg)
+        if not isinstance(arg, list) or len(arg) != 3:
+            raise SpecError(f"{src}: {where}.{form} = {_fmt(arg)}: expected [start, stop, n]")
+        a = _number(src, f"{where}.{form}[0]", arg[0])
+        b = _number(src, f"{where}.{form}[1]", arg[1])
+        n = _number(src, f"{where}.{form}[2]", arg[2], integer=True)
+        if n < 1:
+            raise SpecError(f"{src}: {where}.{form} = {_fmt(arg)}: n = {n} gives an empty grid")
+        if form == "logspace":
+            if a <= 0 or b <= 0:
+                raise SpecError(f"{src}: {where}.logspace = {_fmt(arg)}: endpoints must be > 0")
+            vals = np.geomspace(a, b, n)
+        else:
+            vals = np.linspace(a, b, n)
+        return tuple(float(x) for x in vals)
+    if not isinstance(value, list):
+        raise SpecError(f"{src}: {where} = {_fmt(value)}: expected a list of numbers, got "
+                        f"{type(value).__name__}")
+    if not value:
+        raise SpecError(f"{src}: {where} = []: empty grid (give at least one value)")
+    vals = tuple(_number(src, f"{where}[{i}]", v) for i, v in enumerate(value))
+    if len(set(vals)) != len(vals):
+        raise SpecError(f"{src}: {where} = {_fmt(value)}: repeated values")
+    return vals
+
+
+def _quote(key: str) -> str:
+    return f'"{key}"' if "." in key else key
+
+
+def _scenario_info(src, name):
+    """(enforced barriers, monitored barriers, outputs, pole counts) of a scenario, or a
+    SpecError naming the scenarios the batched path offers."""
+    from safewbc_jax import scenarios
+
+    known = list(scenarios.SCENARIOS) + list(scenarios.WALKING)
+    if not isinstance(name, str) or name not in known:
+        raise SpecError(f"{src}: sweep.scenario = {_fmt(name)}: no such scenario; "
+                        f"scenarios are {', '.join(known)}")
+    supported = batched_scenarios()
+    if supported is not None and name not in supported:
+        raise SpecError(f"{src}: sweep.scenario = {_fmt(name)}: the batched path does not run "
+                        f"this scenario yet; it runs {', '.join(sorted(supported))}")
+    sc = scenarios.get_scenario(name, True)
+    params = sc.default_params()
+    return (tuple(b.name for b in sc.barriers), tuple(b.name for b in sc.monitors),
+            tuple(o.name for o in sc.outputs),
+            {k: int(np.size(v)) for k, v in params.poles.items()}, params)
+
+
+def batched_scenarios():
+    """Scenario names the batched path runs, as ``safewbc_jax.batch.rollout`` says
+    (``BATCHED_SCENARIOS``); None when it is not there."""
+    try:
+        from safewbc_jax.batch import rollout
+    except ImportError:
+        return None
+    for attr in ("BATCHED_SCENARIOS", "SUPPORTED_SCENARIOS"):
+        names = getattr(rollout, attr, None)
+        if names is not None:
+            return set(names)
+    return None
+
+
+_POLE_RE = re.compile(r"^p([1-9][0-9]*)$")
+
+
+def _parse_axis(src, key, values, info) -> Axis:
+    from safewbc_jax.params import SCALARS
+
+    barriers, monitors, outputs, pole_counts = info
+    where = f"grid.{_quote(key)}"
+    parts = key.split(".")
+    head = parts[0]
+    bad = lambda why: SpecError(f"{src}: {where}: {why}")  # noqa: E731
+    if head == "poles":
+        if len(parts) not in (2, 3):
+            raise bad("expected poles.BARRIER or poles.BARRIER.pI")
+        b = parts[1]
+        if b not in pole_counts:
+            raise bad(f"no barrier {b!r}; barriers of this scenario are {sorted(pole_counts)}")
+        if any(v <= 0 for v in values):
+            v = next(v for v in values if v <= 0)
+            raise SpecError(f"{src}: {where} = {_fmt(list(values))}: pole {v!r} is not > 0 "
+                            "(Theorem 1 needs positive poles)")
+        if len(parts) == 2:
+            return Axis(key, "poles", b, values)
+        m = _POLE_RE.match(parts[2])
+        if not m or int(m.group(1)) > pole_counts[b]:
+            raise bad(f"{parts[2]!r} is not a pole of {b!r}: it has "
+                      f"{', '.join(f'p{i + 1}' for i in range(pole_counts[b]))}")
+        return Axis(key, "pole", b, values, int(m.group(1)) - 1)
+    if head == "threshold":
+        if len(parts) != 2 or parts[1] not in pole_counts:
+            raise bad(f"expected threshold.BARRIER with BARRIER one of {sorted(pole_counts)}")
+        return Axis(key, "threshold", parts[1], values)
+    if head in GAIN_TABLES or head in SCALES:
+        if len(parts) != 2 or parts[1] not in outputs:
+            raise bad(f"expected {head}.OUTPUT with OUTPUT one of {list(outputs)}")
+        if head == "weight" and any(v < 0 for v in values) or head != "weight" and any(v <= 0 for v in values):
+            raise SpecError(f"{src}: {where} = {_fmt(list(values))}: must be "
+                            f"{'>= 0' if head == 'weight' else '> 0'}")
+        return Axis(key, "gain" if head in GAIN_TABLES else "scale", parts[1], values)
+    if head in SCALARS and len(parts) == 1:
+        if any(v < 0 for v in values) or head in ("mu", "f_min") and any(v <= 0 for v in values):
+            raise SpecError(f"{src}: {where} = {_fmt(list(values))}: must be positive")
+        return Axis(key, "scalar", head, values)
+    if head == "push" and len(parts) == 2 and parts[1] in PUSH_KEYS:
+        _check_push_values(src, where, parts[1], values)
+        return Axis(key, "push", parts[1], values)
+    raise bad("unknown axis; axes are poles.BARRIER[.pI], threshold.BARRIER, kp|kd|weight.OUTPUT, "
+              "kp_scale|kd_scale|weight_scale|gain_scale.OUTPUT, push.magnitude|direction|at|"
+              f"duration, or one of {', '.join(SCALARS)}")
+
+
+def _check_push_values(src, where, key, values):
+    if key == "magnitude" and any(v < 0 for v in values):
+        raise SpecError(f"{src}: {where} = {_fmt(list(values))}: magnitudes must be >= 0 "
+                        "(turn the push with direction)")
+    if key == "at" and any(v < 0 for v in values):
+        raise SpecError(f"{src}: {where} = {_fmt(list(values))}: push times must be >= 0")
+    if key == "duration" and any(v <= 0 for v in values):
+        raise SpecError(f"{src}: {where} = {_fmt(list(values))}: push durations must be > 0")
+
+
+def _table(src, data, name):
+    v = data.get(name, {})
+    if not isinstance(v, dict):
+        raise SpecError(f"{src}: {name} = {_fmt(v)}: expected a table [{name}]")
+    return v
+
+
+def load_spec(path, text: str | None = None) -> SweepSpec:
+    """Read and validate a sweep spec (``text`` instead of reading ``path`` when given)."""
+    import tomllib
+
+    src = str(path)
+    if text is None:
+        p = Path(path)
+        if not p.is_file():
+            raise SpecError(f"sweep spec {src} does not exist")
+        text = p.read_text()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SpecError(f"{src}: not valid TOML: {e}") from None
+    return parse_spec(data, src)
+
+
+def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
+    for k in data:
+        if k not in SECTIONS:
+            raise SpecError(f"{src}: unknown key {k!r} = {_fmt(data[k])}; a spec has the tables "
+                            f"{', '.join('[' + s + ']' for s in SECTIONS)}")
+    sw = _table(src, data, "sweep")
+    for k, v in sw.items():
+        if k not in SWEEP_KEYS:
+            raise SpecError(f"{src}: unknown key sweep.{k} = {_fmt(v)}; known: {', '.join(SWEEP_KEYS)}")
+        want = SWEEP_KEYS[k]
+        if want is str and not isinstance(v, str) or want is bool and not isinstance(v, bool):
+            raise SpecError(f"{src}: sweep.{k} = {_fmt(v)}: expected "
+                            f"{'a string' if want is str else 'true or false'}")
+    if "scenario" not in sw:
+        raise SpecError(f"{src}: sweep.scenario is missing (the scenario to roll out)")
+    scenario = sw["scenario"]
+    barriers, monitors, outputs, pole_counts, defaults = _scenario_info(src, scenario)
+    num = lambda k, **kw: _number(src, f"sweep.{k}", sw[k], **kw) if k in sw else None  # noqa: E731
+    duration = num("duration", positive=True)
+    settle = num("settle", positive=True)
+    control_dt = num("control_dt", positive=True) or 1e-3
+    repeats = num("repeats", positive=True, integer=True) or 1
+    seed = num("seed", nonneg=True, integer=True) or 0
+    batch = num("batch", positive=True, integer=True) or 64
+    tol = num("violation_tol", nonneg=True) or 0.0
+    barrier_on = sw.get("barrier", True)
+    enforced = barriers if barrier_on else ()
+    all_b = tuple(barriers) + tuple(monitors)
+    target = sw.get("target")
+    if target is None:
+        target = barriers[0] if barriers else (monitors[0] if monitors else None)
+    elif target not in all_b:
+        raise SpecError(f"{src}: sweep.target = {_fmt(target)}: no barrier {target!r} in "
+                        f"scenario {scenario!r}; its barriers are {list(all_b) or 'none'}")
+
+    params = _table(src, data, "params")
+    from safewbc_jax.params import ParamsError, apply_overrides
+
+    try:
+        apply_overrides(defaults, params, f"{src}: [params]")
+    except ParamsError as e:
+        raise SpecError(str(e)) from None
+
+    grid = _table(src, data, "grid")
+    info = (barriers, monitors, outputs, pole_counts)
+    axes = tuple(_parse_axis(src, k, _axis_values(src, k, v), info) for k, v in grid.items())
+    for b in pole_counts:
+        whole = [a for a in axes if a.kind == "poles" and a.target == b]
+        single = [a for a in axes if a.kind == "pole" and a.target == b]
+        if whole and single:
+            raise SpecError(f"{src}: grid.\"{whole[0].name}\" and grid.\"{single[0].name}\" "
+                            "both set the poles of {b!r}; sweep one or the other")
+    for o in outputs:
+        kinds = {a.name.split(".")[0] for a in axes if a.target == o and a.kind in ("gain", "scale")}
+        for g in GAIN_TABLES:
+            clash = {g, f"{g}_scale"} | ({"gain_scale"} if g in ("kp", "kd") else set())
+            if len(kinds & clash) > 1:
+                raise SpecError(f"{src}: grid sets {g} of output {o!r} through "
+                                f"{sorted(kinds & clash)}; sweep one of them")
+
+    push_tab = _table(src, data, "push")
+    push = dict(PUSH_DEFAULTS)
+    for k, v in push_tab.items():
+        if k not in PUSH_KEYS:
+            raise SpecError(f"{src}: unknown key push.{k} = {_fmt(v)}; known: {', '.join(PUSH_KEYS)}")
+        if any(a.kind == "push" and a.target == k for a in axes):
+            raise SpecError(f"{src}: push.{k} = {_fmt(v)} is also swept as grid.\"push.{k}\"; "
+                            "give it in one place")
+        push[k] = _number(src, f"push.{k}", v)
+        _check_push_values(src, f"push.{k}", k, [push[k]])
+
+    pert_tab = _table(src, data, "perturb")
+    perturb = {k: 0.0 for k in PERTURB_KEYS}
+    for k, v in pert_tab.items():
+        if k not in PERTURB_KEYS:
+            raise SpecError(f"{src}: unknown key perturb.{k} = {_fmt(v)}; known: "
+                            f"{', '.join(PERTURB_KEYS)}")
+        perturb[k] = _number(src, f"perturb.{k}", v, nonneg=True)
+
+    tune_tab = _table(src, data, "tune")
+    tune = dict(TUNE_DEFAULTS)
+    for k, v in tune_tab.items():
+        if k not in TUNE_KEYS:
+            raise SpecError(f"{src}: unknown key tune.{k} = {_fmt(v)}; known: {', '.join(TUNE_KEYS)}")
+        if k == "objective":
+            if isinstance(v, str):
+                v = [v]
+            if not isinstance(v, list) or not v or not all(isinstance(x, str) for x in v):
+                raise SpecError(f"{src}: tune.objective = {_fmt(v)}: expected a non-empty list "
+                                "of metric names such as \"tracking_rms.com\"")
+            for x in v:
+                if not (x.startswith("tracking_rms.") and x.split(".", 1)[1] in outputs):
+                    raise SpecError(f"{src}: tune.objective = {_fmt(v)}: {x!r} is not a "
+                                    "tracking metric of this scenario; use "
+                                    f"{', '.join('tracking_rms.' + o for o in outputs)}")
+            tune[k] = list(v)
+        elif k == "barrier":
+            if not isinstance(v, str) or v not in barriers:
+                raise SpecError(f"{src}: tune.barrier = {_fmt(v)}: not an enforced barrier of "
+                                f"{scenario!r}; enforced: {list(barriers) or 'none'}")
+            tune[k] = v
+        elif k in ("rounds", "points"):
+            tune[k] = _number(src, f"tune.{k}", v, positive=True, integer=True)
+            if k == "points" and tune[k] < 2:
+                raise SpecError(f"{src}: tune.points = {v!r}: needs at least 2 per pole")
+        else:
+            tune[k] = _number(src, f"tune.{k}", v, positive=True)
+    if not 0 < tune["shrink"] < 1:
+        raise SpecError(f"{src}: tune.shrink = {tune['shrink']!r}: must be between 0 and 1")
+    if tune["pole_min"] >= tune["pole_max"]:
+        raise SpecError(f"{src}: tune.pole_min = {tune['pole_min']!r} must be below "
+                        f"tune.pole_max = {tune['pole_max']!r}")
+    tune.setdefault("objective", [f"tracking_rms.{o}" for o in outputs])
+    tune.setdefault("barrier", target if target in barriers else None)
+
+    spec = SweepSpec(path=src, scenario=scenario, barrier=barrier_on, duration=duration,
+                     settle=settle, control_dt=control_dt, repeats=repeats, seed=seed,
+                     batch=batch, violation_tol=tol, target=target,
+                     description=sw.get("description", ""), params=params, axes=axes,
+                     push=push, perturb=perturb, tune=tune, barriers=tuple(enforced),
+                     monitors=tuple(monitors) + (() if barrier_on else tuple(barriers)),
+                     outputs=outputs, pole_counts=pole_counts)
+    if spec.n_rollouts > MAX_ROLLOUTS:
+        raise SpecError(f"{src}: the grid times sweep.repeats gives {spec.n_rollouts} rollouts "
+                        f"(more than {MAX_ROLLOUTS}); shrink the grid")
+    return spec
+
+
+# --------------------------------------------------------------------------------------
+# Inputs of the rollouts
+# --------------------------------------------------------------------------------------
+
+def base_params(spec: SweepSpec):
+    """The scenario's default ControllerParams with the spec's fixed overrides."""
+    from safewbc_jax import scenarios
+    from safewbc_jax.params import apply_overrides
+
+    p = scenarios.get_scenario(spec.scenario, spec.barrier).default_params()
+    return apply_overrides(p, spec.params, f"{spec.path}: [params]")
+
+
+def params_batch(base, axes, values: np.ndarray):
+    """ControllerParams whose leaves have a leading batch axis: row i of ``values``
+    (B, len(axes)) sets the swept axes of rollout i on top of ``base``. numpy float64."""
+    import dataclasses as dc
+
+    b = values.shape[0]
+    stack = lambda x: np.repeat(np.asarray(x, np.float64)[None], b, axis=0)  # noqa: E731
+    fields = {}
+    for f in dc.fields(base):
+        v = getattr(base, f.name)
+        fields[f.name] = {k: stack(x) for k, x in v.items()} if isinstance(v, dict) else stack(v)
+    for j, a in enumerate(axes):
+        col = np.asarray(values[:, j], np.float64)
+        if a.kind == "poles":
+            fields["poles"][a.target][:] = col[:, None]
+        elif a.kind == "pole":
+            fields["poles"][a.target][:, a.index] = col
+        elif a.kind == "threshold":
+            fields["threshold"][a.target][:] = col
+        elif a.kind == "gain":
+            fields[a.name.split(".")[0]][a.target][:] = col[:, None]
+        elif a.kind == "scale":
+            kind = a.name.split(".")[0]
+            if kind == "gain_scale":
+                fields["kp"][a.target] *= col[:, None]
+                fields["kd"][a.target] *= np.sqrt(col)[:, None]
+            else:
+                fields[kind[:-len("_scale")]][a.target] *= col[:, None]
+        elif a.kind == "scalar":
+            fields[a.target][:] = col
+    return type(base)(**fields)
+
+
+def push_arrays(spec: SweepSpec, values: np.ndarray) -> dict:
+    """Per-rollout push (magnitude, direction in degrees, at, duration, and the force
+    vector fx, fy, fz) from the fixed push and the swept push axes."""
+    b = values.shape[0]
+    out = {k: np.full(b, float(v)) for k, v in spec.push.items()}
+    for j, a in enumerate(spec.axes):
+        if a.kind == "push":
+            out[a.target] = np.asarray(values[:, j], float)
+    rad = np.deg2rad(out["direction"])
+    out["fx"] = out["magnitude"] * np.cos(rad)
+    out["fy"] = out["magnitude"] * np.sin(rad)
+    out["fz"] = np.zeros(b)
+    return out
+
+
+def velocity_std(spec: SweepSpec, sim_model) -> np.ndarray:
+    """(nv_sim,) standard deviation of the initial velocity perturbation per simulator DoF:
+    the free joint's linear and angular parts, and the hinges. Ball joints (the rods of the
+    closed chains) are left alone."""
+    import mujoco
+
+    std = np.zeros(sim_model.nv)
+    for j in range(sim_model.njnt):
+        adr = int(sim_model.jnt_dofadr[j])
+        t = int(sim_model.jnt_type[j])
+        if t == mujoco.mjtJoint.mjJNT_FREE:
+            std[adr:adr + 3] = spec.perturb["base_linear"]
+            std[adr + 3:adr + 6] = spec.perturb["base_angular"]
+        elif t == mujoco.mjtJoint.mjJNT_HINGE:
+            std[adr] = spec.perturb["joints"]
+    return std
+
+
+def perturbations(seed: int, rollouts: np.ndarray, std: np.ndarray,
+                  period: int | None = None) -> np.ndarray:
+    """(len(rollouts), nv) initial velocity perturbations: rollout k draws from its own
+    generator seeded by (seed, k), so a rollout's perturbation does not depend on the
+    chunking, the batch size or the number of devices. With ``period`` P, rollout k uses
+    draw k mod P (tune-poles: every candidate meets the same draws)."""
+    out = np.zeros((len(rollouts), std.size))
+    if not np.any(std):
+        return out
+    keys = np.asarray(rollouts) if not period else np.asarray(rollouts) % int(period)
+    for i, k in enumerate(keys):
+        rng = np.random.default_rng([int(seed), int(k)])
+        out[i] = rng.standard_normal(std.size) * std
+    return out

@@ -1,0 +1,283 @@
+"""Sweep specs (validation before anything compiles), Wilson intervals, the chunked
+Parquet table and the report figures: everything of the sweep layer that needs no
+rollout. The rollouts themselves are in test_sweeps_rollouts.py."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safewbc_jax.sweeps import spec as spec_mod
+from safewbc_jax.sweeps import table as table_mod
+from safewbc_jax.sweeps.spec import SpecError, load_spec
+from safewbc_jax.sweeps.stats import wilson_interval
+
+ROOT = Path(__file__).resolve().parents[1]
+
+GOOD = """
+[sweep]
+scenario = "arms"
+duration = 0.5
+repeats = 2
+[grid]
+"poles.left_fist.p1" = [2.0, 8.0]
+"poles.left_fist.p2" = { logspace = [1.0, 100.0, 3] }
+"push.magnitude" = [0.0, 50.0]
+[perturb]
+base_linear = 0.01
+"""
+
+
+def spec_from(tmp_path, text, name="s.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return load_spec(p)
+
+
+def test_shipped_specs_are_valid():
+    for name in ("kalpha_poles", "push_forces", "gains"):
+        s = load_spec(ROOT / "sweeps" / f"{name}.toml")
+        assert s.n_rollouts >= 50
+        assert s.target == "left_fist"
+    s = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
+    assert [a.name for a in s.axes] == ["poles.left_fist.p1", "poles.left_fist.p2"]
+    assert s.axes[0].values[0] == pytest.approx(1.0) and s.axes[0].values[-1] == pytest.approx(64.0)
+    assert s.n_settings == 49
+
+
+def test_grid_plan_is_row_major(tmp_path):
+    s = spec_from(tmp_path, GOOD)
+    assert s.n_settings == 2 * 3 * 2 and s.n_rollouts == 24
+    arr = s.settings_array()
+    assert arr.shape == (12, 3)
+    # the last axis varies fastest, as setting() says
+    assert s.setting(0) == {"poles.left_fist.p1": 2.0, "poles.left_fist.p2": 1.0, "push.magnitude": 0.0}
+    assert s.setting(1)["push.magnitude"] == 50.0
+    assert s.setting(2)["poles.left_fist.p2"] == pytest.approx(10.0)
+    assert s.setting(11) == {"poles.left_fist.p1": 8.0, "poles.left_fist.p2": pytest.approx(100.0),
+                             "push.magnitude": 50.0}
+    for i in range(12):
+        assert list(s.setting(i).values()) == pytest.approx(list(arr[i]))
+
+
+@pytest.mark.parametrize("text, needle", [
+    # unknown keys, at every level
+    ('[sweep]\nscenario = "arms"\n[grids]\nx = 1', "unknown key 'grids'"),
+    ('[sweep]\nscenario = "arms"\nrepeat = 2', "unknown key sweep.repeat = 2"),
+    ('[sweep]\nscenario = "arms"\n[push]\nforce = 3.0', "unknown key push.force = 3.0"),
+    ('[sweep]\nscenario = "arms"\n[perturb]\nbase = 0.1', "unknown key perturb.base = 0.1"),
+    ('[sweep]\nscenario = "arms"\n[tune]\nsteps = 3', "unknown key tune.steps = 3"),
+    ('[sweep]\nscenario = "arms"\n[params]\nfriction = 0.5', "unknown key 'friction'"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"foo.bar" = [1.0]', 'grid."foo.bar": unknown axis'),
+    # wrong types
+    ('[sweep]\nscenario = "arms"\nrepeats = "four"', 'sweep.repeats = "four": expected an integer'),
+    ('[sweep]\nscenario = "arms"\nrepeats = 2.5', "sweep.repeats = 2.5: expected an integer"),
+    ('[sweep]\nscenario = "arms"\nbarrier = 1', "sweep.barrier = 1: expected true or false"),
+    ('[sweep]\nscenario = "arms"\n[grid]\nmu = 0.5', "grid.mu = 0.5: expected a list of numbers"),
+    ('[sweep]\nscenario = "arms"\n[grid]\nmu = [0.5, "x"]', 'grid.mu[1] = "x": expected a number'),
+    ('[sweep]\nscenario = "arms"\n[grid]\nmu = {range = [1, 2]}', "grid.mu = {'range'"),
+    ('[sweep]\nscenario = "arms"\n[perturb]\njoints = "lots"', 'perturb.joints = "lots": expected a number'),
+    # empty grids
+    ('[sweep]\nscenario = "arms"\n[grid]\nmu = []', "grid.mu = []: empty grid"),
+    ('[sweep]\nscenario = "arms"\n[grid]\nmu = {linspace = [0.3, 0.9, 0]}', "gives an empty grid"),
+    # non-positive poles
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist.p1" = [1.0, 0.0]',
+     'grid."poles.left_fist.p1" = [1.0, 0.0]: pole 0.0 is not > 0'),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist" = [-2.0]', "pole -2.0 is not > 0"),
+    ('[sweep]\nscenario = "arms"\n[params.poles]\nleft_fist = [0.0, 5.0]', "poles must be > 0"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist.p3" = [1.0]', "'p3' is not a pole of 'left_fist'"),
+    # unknown scenario, barrier, output
+    ('[sweep]\nscenario = "dance"', 'sweep.scenario = "dance": no such scenario'),
+    ('[sweep]\nscenario = "walk"', "the batched path does not run this scenario yet"),
+    ('[sweep]\nbarrier = true', "sweep.scenario is missing"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.right_foot.p1" = [1.0]', "no barrier 'right_foot'"),
+    ('[sweep]\nscenario = "squat"\ntarget = "left_fist"', 'sweep.target = "left_fist": no barrier'),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"kp.legs" = [10.0]', "kp.OUTPUT with OUTPUT one of"),
+    ('[sweep]\nscenario = "arms"\n[tune]\nobjective = ["tracking_rms.legs"]', "'tracking_rms.legs' is not a tracking metric"),
+    # other bad values
+    ('[sweep]\nscenario = "arms"\nduration = -1.0', "sweep.duration = -1.0: must be > 0"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"push.magnitude" = [-5.0]', "magnitudes must be >= 0"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"push.at" = [1.0]\n[push]\nat = 2.0', "also swept"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist" = [1.0]\n"poles.left_fist.p1" = [2.0]', "sweep one or the other"),
+    ('[sweep]\nscenario = "arms"\n[grid]\nmu = [0.5, 0.5]', "repeated values"),
+    ('[sweep]\nscenario = "arms"\n[tune]\nshrink = 1.5', "tune.shrink = 1.5: must be between 0 and 1"),
+    ('[sweep\nscenario = "arms"', "not valid TOML"),
+])
+def test_each_bad_spec_gets_one_clear_error(tmp_path, text, needle):
+    with pytest.raises(SpecError) as e:
+        spec_from(tmp_path, text, "bad.toml")
+    msg = str(e.value)
+    assert needle in msg, msg
+    assert str(tmp_path / "bad.toml") in msg          # names the file
+    assert "\n" not in msg.strip()                    # one line
+
+
+def test_missing_spec_file(tmp_path):
+    with pytest.raises(SpecError, match="does not exist"):
+        load_spec(tmp_path / "nope.toml")
+
+
+def test_cli_rejects_bad_spec_before_compiling(tmp_path):
+    """The CLI stops on a bad spec within seconds (no compile), exit status 2, one line."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist.p2" = [4.0, -1.0]\n')
+    r = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "sweep", str(bad), "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert 'grid."poles.left_fist.p2" = [4.0, -1.0]: pole -1.0 is not > 0' in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_params_batch_applies_every_axis_kind(tmp_path):
+    s = spec_from(tmp_path, """
+[sweep]
+scenario = "arms"
+[params]
+mu = 0.7
+[grid]
+"poles.left_fist" = [3.0, 5.0]
+"poles.right_fist.p2" = [7.0]
+"threshold.left_fist" = [0.04]
+"kp.torso" = [50.0]
+"gain_scale.arms" = [4.0]
+"weight_scale.com" = [0.5]
+f_min = [20.0]
+""")
+    base = spec_mod.base_params(s)
+    vals = s.settings_array()
+    p = spec_mod.params_batch(base, s.axes, vals)
+    assert np.asarray(p.poles["left_fist"]).tolist() == [[3.0, 3.0], [5.0, 5.0]]
+    assert np.asarray(p.poles["right_fist"])[:, 1].tolist() == [7.0, 7.0]
+    assert np.asarray(p.threshold["left_fist"]).tolist() == [0.04, 0.04]
+    assert np.all(np.asarray(p.kp["torso"]) == 50.0)
+    d_kp, d_kd = np.asarray(base.kp["arms"]), np.asarray(base.kd["arms"])
+    np.testing.assert_allclose(p.kp["arms"][0], 4.0 * d_kp)
+    np.testing.assert_allclose(p.kd["arms"][0], 2.0 * d_kd)      # sqrt(4): same damping ratio
+    np.testing.assert_allclose(p.weight["com"][1], 0.5 * np.asarray(base.weight["com"]))
+    assert np.asarray(p.mu).tolist() == [0.7, 0.7] and np.asarray(p.f_min).tolist() == [20.0, 20.0]
+    # the base is untouched and every leaf has the batch axis
+    import jax
+    assert all(np.shape(x)[0] == 2 for x in jax.tree_util.tree_leaves(p))
+    assert float(base.mu) == 0.7 and np.asarray(base.poles["left_fist"]).tolist() == [10.0, 10.0]
+
+
+def test_push_and_perturbations(tmp_path):
+    s = spec_from(tmp_path, GOOD + '\n[push]\ndirection = 90.0\n')
+    vals = s.settings_array()
+    push = spec_mod.push_arrays(s, vals)
+    np.testing.assert_allclose(push["fx"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(push["fy"], vals[:, 2])
+    import mujoco
+
+    from safewbc_jax import paths
+    m = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
+    std = spec_mod.velocity_std(s, m)
+    assert std.shape == (m.nv,) and np.all(std[:3] == 0.01) and np.all(std[3:] == 0.0)
+    # rollout k's draw depends on (seed, k) only, not on the chunk it is in
+    a = spec_mod.perturbations(3, np.arange(10), std)
+    b = np.concatenate([spec_mod.perturbations(3, np.arange(0, 4), std),
+                        spec_mod.perturbations(3, np.arange(4, 10), std)])
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, spec_mod.perturbations(4, np.arange(10), std))
+    assert np.all(a[:, 3:] == 0.0) and 0.002 < np.std(a[:, :3]) < 0.03
+
+
+def test_wilson_interval_textbook_values():
+    """Newcombe (1998), Stat. Med. 17:857, table I, method 3 (Wilson score, no continuity
+    correction), to the 4 decimals printed there."""
+    for (k, n), (lo, hi) in {(81, 263): (0.2553, 0.3662), (15, 148): (0.0624, 0.1605),
+                             (0, 20): (0.0, 0.1611), (1, 29): (0.0061, 0.1718),
+                             (29, 29): (0.8830, 1.0)}.items():
+        got = wilson_interval(k, n)
+        assert got == pytest.approx((lo, hi), abs=5e-5), (k, n, got)
+    lo, hi = wilson_interval(np.array([0, 5]), np.array([10, 10]))
+    assert lo[0] == 0.0 and hi[1] == pytest.approx(0.7634, abs=5e-5)   # 5/10: 0.2366-0.7634
+    assert lo[1] == pytest.approx(0.2366, abs=5e-5)
+
+
+def test_chunk_plan_and_atomic_parquet(tmp_path):
+    assert table_mod.plan_chunks(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    assert table_mod.plan_chunks(8, 4) == [(0, 4), (4, 8)]
+    out = tmp_path / "sw"
+    man = {"fingerprint": "abc", "seed": 1, "batch": 4, "n_rollouts": 10}
+    table_mod.open_manifest(out, man, "x = 1\n")
+    table_mod.write_chunk(out, 1, {"rollout": np.arange(4, 8), "h": np.linspace(0, 1, 4)})
+    table_mod.write_chunk(out, 0, {"rollout": np.arange(0, 4), "h": np.zeros(4)})
+    # a temporary file of a chunk in flight is invisible to readers and removed on resume
+    (out / "chunks" / ".chunk-000002.parquet.tmp-123").write_bytes(b"PAR1 half written")
+    assert table_mod.finished_chunks(out) == {0, 1}
+    cols = table_mod.read_columns(out)
+    assert cols["rollout"].tolist() == list(range(8))
+    np.testing.assert_allclose(cols["h"][4:], np.linspace(0, 1, 4))
+    assert table_mod.remove_partial(out) == [".chunk-000002.parquet.tmp-123"]
+    # resuming with another seed / batch / spec is refused, naming what differs
+    for key, val in (("seed", 2), ("batch", 8), ("fingerprint", "other")):
+        with pytest.raises(table_mod.TableError, match=f"{key} = "):
+            table_mod.open_manifest(out, {**man, key: val})
+    assert table_mod.open_manifest(out, dict(man))["seed"] == 1
+    with pytest.raises(table_mod.TableError, match="not a sweep directory"):
+        table_mod.read_manifest(tmp_path)
+
+
+def _fake_table(tmp_path):
+    """A table with the columns run_sweep writes, filled from a made-up closed form (a
+    report test only; every rollout test runs the real batched path)."""
+    rng = np.random.default_rng(0)
+    p1, p2 = np.meshgrid([1.0, 4.0, 16.0], [2.0, 8.0], indexing="ij")
+    p1, p2 = np.repeat(p1.ravel(), 10), np.repeat(p2.ravel(), 10)
+    n = p1.size
+    mag = np.tile(np.repeat([0.0, 100.0], 5), 6)
+    d = np.tile([0.0, 90.0, 180.0, 270.0, 0.0], 12)
+    hmin = 0.02 / np.sqrt(p1 * p2) - 0.003 * mag / 100 + rng.normal(0, 0.001, n)
+    cols = {"rollout": np.arange(n), "setting": np.arange(n) // 5, "repeat": np.arange(n) % 5,
+            "poles.left_fist.p1": p1, "poles.left_fist.p2": p2, "push.magnitude": mag,
+            "push.direction": d, "push.at": np.ones(n), "push.duration": np.full(n, 0.15),
+            "fell": mag * p1 > 1500, "qp_failed": np.zeros(n, int), "fallbacks": np.zeros(n, int),
+            "barrier_min.left_fist": hmin, "tracking_rms.arms": 0.05 + 0.01 / p1,
+            "tracking_rms.com": np.full(n, 0.002)}
+    out = tmp_path / "rep"
+    man = {"fingerprint": "f", "seed": 0, "batch": 20, "n_rollouts": n, "n_chunks": 3,
+           "scenario": "arms", "axes": ["poles.left_fist.p1", "poles.left_fist.p2",
+                                        "push.magnitude", "push.direction"],
+           "barriers": ["left_fist"], "outputs": ["com", "arms"], "target": "left_fist",
+           "violation_tol": 0.0, "objective": ["tracking_rms.arms"]}
+    table_mod.open_manifest(out, man)
+    for k, (a, b) in enumerate(table_mod.plan_chunks(n, 20)):
+        table_mod.write_chunk(out, k, {c: v[a:b] for c, v in cols.items()})
+    return out, cols
+
+
+def test_report_from_a_table(tmp_path):
+    from safewbc_jax.sweeps.report import make_report
+
+    out, cols = _fake_table(tmp_path)
+    r = make_report(out)
+    assert set(r["figures"]) == {"poles_heatmap.png", "push_violation.png",
+                                 "tracking_vs_margin.png"}
+    for f in r["figures"]:
+        assert (out / f).stat().st_size > 10_000
+    text = (out / "summary.md").read_text()
+    # the overall violation count and its Wilson interval, as computed here
+    k = int(np.sum(cols["barrier_min.left_fist"] < 0))
+    lo, hi = wilson_interval(k, 60)
+    assert f"barrier violations: {k}/60 = {k / 60:.3f} [{lo:.3f}, {hi:.3f}]" in text
+    assert f"falls: {int(np.sum(cols['fell']))}/60" in text
+    # best setting: the smallest poles (largest margin, no fall); worst: the largest
+    best = text.split("## Best")[1].split("\n| ")[2]
+    worst = text.split("## Worst")[1].split("\n| ")[2]
+    assert best.startswith("4 | 2 |"), best      # safe, least tracking
+    assert worst.startswith("16 | 8 |"), worst
+    assert "## By push condition" in text
+
+
+def test_cli_sweep_help_lists_options():
+    r = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "sweep", "--help"],
+                       capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert r.returncode == 0
+    for opt in ("--out", "--batch", "--seed"):
+        assert opt in r.stdout
