@@ -56,9 +56,21 @@ def _cmd_sweep(args) -> int:
     from safewbc_jax.sweeps.spec import load_spec
 
     spec = load_spec(args.spec)          # every check before anything compiles
+    hosts, index = args.hosts, args.host_index
+    if args.distributed:
+        import jax
+
+        jax.distributed.initialize()     # coordinator and process ids from the cluster
+        hosts, index = jax.process_count(), jax.process_index()
     _compile_cache(args)
-    r = run_sweep(spec, args.out, batch=args.batch, seed=args.seed,
-                  spec_text=Path(args.spec).read_text(), max_chunks=args.max_chunks)
+    try:
+        r = run_sweep(spec, args.out, batch=args.batch, seed=args.seed,
+                      spec_text=Path(args.spec).read_text(), max_chunks=args.max_chunks,
+                      hosts=hosts, host_index=index)
+    except KeyboardInterrupt:
+        print(f"safewbc: interrupted; the finished chunks are kept in {args.out}, rerun the "
+              "same command to resume", file=sys.stderr)
+        return 130
     rate = "" if r.chunks_run == 0 else f", {r.rollouts_per_s:.2f} rollouts/s"
     print(f"sweep {args.out}: {r.chunks_skipped + r.chunks_run}/{r.chunks_total} chunks done "
           f"({r.chunks_run} run now{rate}); table in {args.out}/chunks/*.parquet")
@@ -125,6 +137,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None,
                    help="seed of the perturbations (default: the spec's sweep.seed, else 0)")
     p.add_argument("--max-chunks", type=int, default=None, help="stop after this many chunks")
+    p.add_argument("--hosts", type=int, default=1, help="several hosts share --out: run only "
+                   "the chunks k with k mod HOSTS = --host-index")
+    p.add_argument("--host-index", type=int, default=0, help="this host's index (0-based)")
+    p.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() "
+                   "and take --hosts / --host-index from jax.process_count() / process_index()")
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
     p.set_defaults(func=_cmd_sweep)

@@ -102,10 +102,14 @@ def _fmt_s(s: float) -> str:
 def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | None = None,
               executor: Callable | None = None, progress: Callable | None = None,
               spec_text: str | None = None, max_chunks: int | None = None,
-              check_poles: bool = True) -> SweepResult:
+              check_poles: bool = True, hosts: int = 1, host_index: int = 0) -> SweepResult:
     """Run (or resume) the sweep into ``out``. ``executor(spec, params, push, perturb_v)``
     returns the metrics dict of a batch (default: the real ``run_batch``).
-    ``max_chunks`` stops after that many chunks of this call (for notebooks and tests)."""
+    ``max_chunks`` stops after that many chunks of this call (for notebooks and tests).
+    With ``hosts`` N > 1 this process runs the chunks k with k mod N = ``host_index`` (the
+    same command on N hosts sharing ``out`` runs the whole sweep once)."""
+    if not (hosts >= 1 and 0 <= host_index < hosts):
+        raise ValueError(f"host index {host_index} of {hosts} hosts: expected 0 <= index < hosts")
     out = Path(out)
     batch = spec.batch if batch is None else int(batch)
     seed = spec.seed if seed is None else int(seed)
@@ -132,7 +136,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
 
         check_sweep(spec, base, settings, seed, std)   # Theorem 1, every rollout, no compile
     table_mod.open_manifest(out, manifest, spec_text)
-    stale = table_mod.remove_partial(out)
+    mine = {k for k in range(len(chunks)) if k % hosts == host_index}
+    stale = table_mod.remove_partial(out, mine if hosts > 1 else None)
     if stale:
         say(f"[sweep] removed {len(stale)} partial chunk file(s) of an interrupted run")
     done = table_mod.finished_chunks(out)
@@ -140,10 +145,10 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     if extra:
         raise table_mod.TableError(f"{out}: chunk files {extra} beyond the plan's {len(chunks)} "
                                    "chunks; the directory was written by another plan")
-    todo = [k for k in range(len(chunks)) if k not in done]
+    todo = [k for k in range(len(chunks)) if k not in done and k in mine]
     if done:
         say(f"[sweep] {out}: {len(done)}/{len(chunks)} chunks already done, "
-            f"{len(todo)} to run")
+            f"{len(todo)} to run" + (f" on host {host_index} of {hosts}" if hosts > 1 else ""))
     if not todo:
         return SweepResult(out, n, len(chunks), 0, len(done), 0.0, float("nan"))
     if max_chunks is not None:
@@ -151,16 +156,18 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     execute = executor or real_executor()
     t0 = time.perf_counter()
     ran = 0
+    import jax
+
+    devs = jax.devices()
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
-        f"in {len(chunks)} chunks of {batch}; the first chunk includes compilation")
+        f"in {len(chunks)} chunks of {batch} on {len(devs)} device{'s' if len(devs) > 1 else ''} "
+        f"({devs[0].platform}); the first chunk includes compilation")
     for c, k in enumerate(todo):
         start, stop = chunks[k]
         rollouts = np.arange(start, stop)
         params, push, dv, cols = chunk_inputs(spec, base, settings, rollouts, seed, std)
         m = stop - start
         if m < batch:
-            import jax
-
             params = jax.tree_util.tree_map(lambda x: _pad(x, batch), params)
             push = {kk: _pad(v, batch) for kk, v in push.items()}
             dv = _pad(dv, batch)
@@ -177,7 +184,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         ran += m
         el = time.perf_counter() - t0
         rate = ran / el
-        left = sum(chunks[j][1] - chunks[j][0] for j in todo[c + 1:])
+        left = sum(chunks[j][1] - chunks[j][0] for j in todo[c + 1:])   # of this process
         total_done = sum(chunks[j][1] - chunks[j][0] for j in table_mod.finished_chunks(out))
         say(f"[sweep] {total_done}/{n} rollouts  {rate:.2f} rollouts/s  "
             f"ETA {_fmt_s(left / rate if rate > 0 else float('inf'))}  "

@@ -51,13 +51,18 @@ def finished_chunks(out: Path) -> set[int]:
     return {int(m.group(1)) for f in d.iterdir() if (m := _CHUNK_RE.match(f.name))}
 
 
-def remove_partial(out: Path) -> list[str]:
-    """Delete temporary files that a killed run left; returns their names."""
+_TMP_RE = re.compile(r"^\.chunk-(\d{6,})\.parquet\.tmp")
+
+
+def remove_partial(out: Path, chunks=None) -> list[str]:
+    """Delete temporary files that a killed run left (only those of ``chunks`` when given:
+    on several hosts each one cleans up after itself); returns their names."""
     d = Path(out) / CHUNKS
     gone = []
     if d.is_dir():
         for f in d.iterdir():
-            if f.name.startswith(".") and ".tmp" in f.name:
+            m = _TMP_RE.match(f.name)
+            if m and (chunks is None or int(m.group(1)) in chunks):
                 f.unlink(missing_ok=True)
                 gone.append(f.name)
     return gone

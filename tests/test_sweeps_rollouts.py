@@ -1,0 +1,188 @@
+"""``safewbc sweep`` end to end with the real batched closed loop (safewbc_jax.batch.rollout):
+kill-safety, resume, determinism and the same table on two CPU devices.
+
+Every rollout here runs in a subprocess (a sweep to kill, a process with two host
+devices), all with one configuration (arms, 0.05 s of motion after the 1 s settle that
+the reference blend needs, batch size BATCH), and share JAX's persistent compilation cache
+so that the closed-loop step is compiled once per device count. The one- and two-device
+sweeps run side by side (their compilations are single-threaded).
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safewbc_jax.sweeps import table as table_mod
+
+ROOT = Path(__file__).resolve().parents[1]
+BATCH = 2
+SPEC = """
+[sweep]
+scenario = "arms"
+duration = 0.05
+settle = 1.0
+repeats = 2
+seed = 7
+violation_tol = 0.001
+
+[grid]
+"poles.left_fist.p1" = [5.0, 20.0]
+
+[perturb]
+base_linear = 0.02
+joints = 0.05
+"""
+
+
+def cache_dir() -> str:
+    """JAX's persistent compilation cache of these tests (and of the notebook test)."""
+    return os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(
+        tempfile.gettempdir(), "safewbc-jax-test-xla-cache")
+
+
+def sweep_env(devices: int = 1) -> dict:
+    env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": cache_dir(),
+           "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f]
+    if devices > 1:
+        flags.append(f"--xla_force_host_platform_device_count={devices}")
+    env["XLA_FLAGS"] = " ".join(flags)
+    return env
+
+
+def sweep_cmd(spec: Path, out: Path) -> list:
+    return [sys.executable, "-m", "safewbc_jax.cli", "sweep", str(spec), "--out", str(out),
+            "--batch", str(BATCH)]
+
+
+@pytest.fixture(scope="module")
+def sweeps(tmp_path_factory):
+    """Run the spec three ways: (A) one device, killed with SIGKILL once its first chunk
+    is on disk, then rerun to completion; (B) two devices, in one go, side by side with A."""
+    tmp = tmp_path_factory.mktemp("sweeps")
+    spec = tmp / "tiny.toml"
+    spec.write_text(SPEC)
+    a, b = tmp / "one_device", tmp / "two_devices"
+    log_b = open(tmp / "b.log", "w")
+    proc_b = subprocess.Popen(sweep_cmd(spec, b), env=sweep_env(2), stdout=log_b,
+                              stderr=subprocess.STDOUT, cwd=tmp)
+    log_a = open(tmp / "a1.log", "w")
+    proc_a = subprocess.Popen(sweep_cmd(spec, a), env=sweep_env(1), stdout=log_a,
+                              stderr=subprocess.STDOUT, cwd=tmp)
+    first = table_mod.chunk_path(a, 0)
+    t0 = time.time()
+    while not first.exists():
+        assert proc_a.poll() is None, (tmp / "a1.log").read_text()[-3000:]
+        assert time.time() - t0 < 1200, "the first chunk took more than 20 minutes"
+        time.sleep(0.2)
+    proc_a.send_signal(signal.SIGKILL)   # now in chunk 2 of 2 (compiled, rolling out)
+    proc_a.wait()
+    log_a.close()
+    killed = {"finished": table_mod.finished_chunks(a), "cols": table_mod.read_columns(a),
+              "chunk0": first.read_bytes(), "rc": proc_a.returncode}
+    r = subprocess.run(sweep_cmd(spec, a), env=sweep_env(1), capture_output=True, text=True,
+                       cwd=tmp, timeout=1200)
+    assert proc_b.wait(timeout=1800) == 0, (tmp / "b.log").read_text()[-3000:]
+    log_b.close()
+    return {"a": a, "b": b, "killed": killed, "resume": r,
+            "b_log": (tmp / "b.log").read_text(), "a_log": (tmp / "a1.log").read_text()}
+
+
+@pytest.mark.slow
+def test_killed_sweep_keeps_a_readable_table_and_resumes(sweeps):
+    k = sweeps["killed"]
+    assert k["rc"] == -signal.SIGKILL
+    # the kill lost only the chunk in flight: chunk 0 is whole and readable
+    assert k["finished"] == {0}
+    assert k["cols"]["rollout"].tolist() == list(range(BATCH))
+    assert "[sweep] 2/4 rollouts" in sweeps["a_log"]
+    assert "rollouts/s" in sweeps["a_log"] and "ETA" in sweeps["a_log"]
+    # the rerun skipped chunk 0 (not rewritten) and ran chunk 1 only
+    r = sweeps["resume"]
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "1/2 chunks already done, 1 to run" in r.stderr
+    assert "2/2 chunks done (1 run now" in r.stdout
+    a = sweeps["a"]
+    assert table_mod.chunk_path(a, 0).read_bytes() == k["chunk0"]
+    cols = table_mod.read_columns(a)
+    assert cols["rollout"].tolist() == [0, 1, 2, 3]
+    np.testing.assert_array_equal(cols["poles.left_fist.p1"], [5.0, 5.0, 20.0, 20.0])
+    np.testing.assert_array_equal(cols["repeat"], [0, 1, 0, 1])
+    # real closed-loop numbers: 1.05 s standing, nobody falls, every QP solved, the fist
+    # (5 cm inside its safe set at rest) stays within a centimetre of it
+    assert not cols["fell"].any()
+    assert np.all(cols["qp_failed"] == 0)
+    assert np.all(cols["qp_solved"] + cols["fallbacks"] == 1050)
+    assert np.all((cols["barrier_min.left_fist"] > 0.035) & (cols["barrier_min.left_fist"] < 0.0505))
+    assert np.all(cols["foot_slip_max"] < 0.005)
+    assert np.all(cols["perturb.norm"] > 0.01)
+    # the perturbations differ between rollouts, and so do the outcomes
+    assert len(np.unique(cols["barrier_min.left_fist"])) == 4
+
+
+@pytest.mark.slow
+def test_same_seed_same_table_on_one_and_two_devices(sweeps):
+    """The sweep on two CPU devices (the batch sharded over them, in one go) gives the
+    table of the one-device sweep that was killed and resumed."""
+    assert "on 2 devices" in sweeps["b_log"], sweeps["b_log"][-2000:]
+    assert "on 1 device" in sweeps["a_log"]
+    ta = table_mod.read_table(sweeps["a"]).drop_columns(["chunk"])
+    tb = table_mod.read_table(sweeps["b"]).drop_columns(["chunk"])
+    assert ta.column_names == tb.column_names
+    for name in ta.column_names:
+        x = ta.column(name).to_numpy(zero_copy_only=False)
+        y = tb.column(name).to_numpy(zero_copy_only=False)
+        if x.dtype.kind == "f":
+            # same inputs, same programme up to the partitioning: agreement to rounding
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12, err_msg=name)
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+@pytest.mark.slow
+def test_notebook_runs_in_small_configuration(tmp_path):
+    """notebooks/tune_barrier_poles.ipynb end to end (sweep, report, tune, deployment run)
+    in its small configuration, in a fresh kernel."""
+    import json
+
+    import nbformat
+    from nbclient import NotebookClient
+
+    nb = nbformat.read(ROOT / "notebooks" / "tune_barrier_poles.ipynb", as_version=4)
+    env = sweep_env(1)
+    env.update(SAFEWBC_NOTEBOOK_SMALL="1", SAFEWBC_NOTEBOOK_OUT=str(tmp_path),
+               SAFEWBC_ROOT=str(ROOT), MPLBACKEND="Agg")
+    old = dict(os.environ)
+    os.environ.update(env)       # the kernel inherits this process's environment
+    try:
+        NotebookClient(nb, timeout=1500, kernel_name="python3",
+                       resources={"metadata": {"path": str(tmp_path)}}).execute()
+    finally:
+        os.environ.clear()
+        os.environ.update(old)
+    text = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code"
+                     for o in c.get("outputs", []) if o.get("output_type") == "stream")
+    images = sum("image/png" in o.get("data", {}) for c in nb.cells if c.cell_type == "code"
+                 for o in c.get("outputs", []))
+    assert "small configuration" in text
+    # the sweep's table, the report, the tuned params and the deployment run
+    cols = table_mod.read_columns(tmp_path / "sweep")
+    assert len(cols["rollout"]) == 4 and not cols["fell"].any()
+    assert (tmp_path / "sweep" / "summary.md").is_file() and images >= 4
+    tuning = json.loads((tmp_path / "tune_rounds" / "tuning.json").read_text())
+    best = tuning["best"]["poles"]
+    assert len(best) == 2 and all(2.0 <= p <= 40.0 for p in best)
+    from safewbc_jax.params import load_overrides
+
+    assert load_overrides(tmp_path / "tuned_poles.toml")["poles"]["left_fist"] == pytest.approx(best)
+    m = json.loads((tmp_path / "deploy" / "metrics.json").read_text())
+    assert m["poles"]["left_fist"] == pytest.approx(best)
+    assert not m["fell"] and m["qp_failed"] == 0
+    assert m["barrier_min"]["left_fist"] > 0.0
