@@ -174,7 +174,7 @@ def test_notebook_runs_in_small_configuration(tmp_path):
     assert "small configuration" in text
     # the sweep's table, the report, the tuned params and the deployment run
     cols = table_mod.read_columns(tmp_path / "sweep")
-    assert len(cols["rollout"]) == 4 and not cols["fell"].any()
+    assert len(cols["rollout"]) == 2 and not cols["fell"].any()
     assert (tmp_path / "sweep" / "summary.md").is_file() and images >= 4
     tuning = json.loads((tmp_path / "tune_rounds" / "tuning.json").read_text())
     best = tuning["best"]["poles"]

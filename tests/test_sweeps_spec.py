@@ -97,7 +97,7 @@ def test_grid_plan_is_row_major(tmp_path):
     ('[sweep]\nscenario = "arms"\n[grid]\n"poles.right_foot.p1" = [1.0]', "no barrier 'right_foot'"),
     ('[sweep]\nscenario = "squat"\ntarget = "left_fist"', 'sweep.target = "left_fist": no barrier'),
     ('[sweep]\nscenario = "arms"\n[grid]\n"kp.legs" = [10.0]', "kp.OUTPUT with OUTPUT one of"),
-    ('[sweep]\nscenario = "arms"\n[tune]\nobjective = ["tracking_rms.legs"]', "'tracking_rms.legs' is not a tracking metric"),
+    ('[sweep]\nscenario = "arms"\n[tune]\nobjective = ["tracking_rms.legs"]', "'tracking_rms.legs' is not a metric to minimize"),
     # other bad values
     ('[sweep]\nscenario = "arms"\nduration = -1.0', "sweep.duration = -1.0: must be > 0"),
     ('[sweep]\nscenario = "arms"\n[grid]\n"push.magnitude" = [-5.0]', "magnitudes must be >= 0"),

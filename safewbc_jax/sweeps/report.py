@@ -167,37 +167,47 @@ def poles_figure(man, cols, oc, path) -> bool:
     return True
 
 
+def _sub(oc, sel):
+    return {k: (v[sel] if isinstance(v, np.ndarray) and v.shape[:1] == sel.shape else v)
+            for k, v in oc.items()}
+
+
 def push_figure(man, cols, oc, path) -> bool:
+    """Left: violation and fall rates against push magnitude (over every direction and
+    timing). Right: violation rate against direction, one line per magnitude."""
     mags = np.unique(cols["push.magnitude"])
     dirs = np.unique(cols["push.direction"])
     if len(mags) < 2 and len(dirs) < 2:
         return False
     plt = _plt()
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
-    for panel, (xkey, xs, lkey, ls, xl) in enumerate(
-            (("push.magnitude", mags, "push.direction", dirs, "push magnitude (N)"),
-             ("push.direction", dirs, "push.magnitude", mags, "push direction (deg, 0 = +x, 90 = +y)"))):
-        axis = ax[panel]
-        if len(xs) < 2:
-            axis.set_visible(False)
-            continue
-        lines = ls if len(ls) <= 6 else [None]
-        for lv in lines:
-            sel = np.ones(len(cols["rollout"]), bool) if lv is None else cols[lkey] == lv
-            ix = np.searchsorted(xs, cols[xkey][sel])
-            st = group_stats({k: v[sel] if isinstance(v, np.ndarray) and v.shape[:1] == sel.shape else v
-                              for k, v in oc.items()}, ix, len(xs))
-            lab = "all" if lv is None else f"{lkey.split('.')[1]} {lv:g}"
-            axis.errorbar(xs, st["rate"], yerr=_err(st["rate"], st["lo"], st["hi"]), fmt="o-",
-                          capsize=3, label=f"violation, {lab}")
-            if np.any(st["falls"]):
-                fr = st["falls"] / np.maximum(st["n"], 1)
-                flo, fhi = wilson_interval(st["falls"], st["n"])
-                axis.errorbar(xs, fr, yerr=_err(fr, flo, fhi), fmt="x--", capsize=3,
-                              label=f"fall, {lab}")
-        axis.set(xlabel=xl, ylabel="rate (Wilson 95%)", ylim=(-0.02, 1.02))
-        axis.legend(fontsize=7)
-    fig.suptitle(f"{man['scenario']}: violations of {man.get('target')} under pushes")
+    if len(mags) >= 2:
+        ix = np.searchsorted(mags, cols["push.magnitude"])
+        st = group_stats(oc, ix, len(mags))
+        ax[0].errorbar(mags, st["rate"], yerr=_err(st["rate"], st["lo"], st["hi"]), fmt="o-",
+                       capsize=3, label=f"violation of {man.get('target')}")
+        fr = st["falls"] / np.maximum(st["n"], 1)
+        flo, fhi = wilson_interval(st["falls"], st["n"])
+        ax[0].errorbar(mags, fr, yerr=_err(fr, flo, fhi), fmt="x--", capsize=3, label="fall")
+        ax[0].set(xlabel="push magnitude (N)", ylabel="rate (Wilson 95%)", ylim=(-0.02, 1.02),
+                  title="over every direction and timing")
+        ax[0].legend(fontsize=8)
+    else:
+        ax[0].set_visible(False)
+    if len(dirs) >= 2:
+        for m in (mags if len(mags) <= 6 else mags[np.linspace(0, len(mags) - 1, 6).astype(int)]):
+            sel = cols["push.magnitude"] == m
+            ix = np.searchsorted(dirs, cols["push.direction"][sel])
+            st = group_stats(_sub(oc, sel), ix, len(dirs))
+            ax[1].errorbar(dirs, st["rate"], yerr=_err(st["rate"], st["lo"], st["hi"]), fmt="o-",
+                           capsize=3, label=f"{m:g} N")
+        ax[1].set(xlabel="push direction (deg; 0 = +x forward, 90 = +y left)",
+                  ylabel="violation rate (Wilson 95%)", ylim=(-0.02, 1.02), xticks=dirs,
+                  title="by magnitude")
+        ax[1].legend(fontsize=8)
+    else:
+        ax[1].set_visible(False)
+    fig.suptitle(f"{man['scenario']}: pushes on the torso")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -154,8 +154,9 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     if max_chunks is not None:
         todo = todo[:max_chunks]
     execute = executor or real_executor()
-    t0 = time.perf_counter()
+    t0 = t_chunk = time.perf_counter()
     ran = 0
+    chunk_times = []
     import jax
 
     devs = jax.devices()
@@ -182,12 +183,18 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         table_mod.write_chunk(out, k, cols, {"chunk": k, "start": start, "stop": stop,
                                             "seed": seed, "fingerprint": manifest["fingerprint"]})
         ran += m
-        el = time.perf_counter() - t0
-        rate = ran / el
+        now = time.perf_counter()
+        chunk_times.append((m, now - t_chunk))
+        t_chunk = now
+        el = now - t0
+        # after the first chunk (which compiles), estimate from the later ones only
+        steady = chunk_times[1:] or chunk_times
+        rate = sum(x for x, _ in steady) / max(sum(t for _, t in steady), 1e-9)
         left = sum(chunks[j][1] - chunks[j][0] for j in todo[c + 1:])   # of this process
         total_done = sum(chunks[j][1] - chunks[j][0] for j in table_mod.finished_chunks(out))
-        say(f"[sweep] {total_done}/{n} rollouts  {rate:.2f} rollouts/s  "
+        say(f"[sweep] {total_done}/{n} rollouts  {rate:.3g} rollouts/s  "
             f"ETA {_fmt_s(left / rate if rate > 0 else float('inf'))}  "
-            f"(chunk {k + 1}/{len(chunks)})")
+            f"(chunk {k + 1}/{len(chunks)}, {el:.0f} s so far"
+            + (", first chunk with compilation" if len(chunk_times) == 1 else "") + ")")
     el = time.perf_counter() - t0
     return SweepResult(out, n, len(chunks), len(todo), len(done), el, ran / el if el > 0 else float("nan"))

@@ -34,6 +34,7 @@ A spec is a TOML file::
     [tune]                   # used by ``safewbc tune-poles`` only
     rounds = 3  points = 4  shrink = 0.5  pole_min = 0.5  pole_max = 200.0
     objective = ["tracking_rms.arms"]
+    equal_poles = false      # true: search p1 = ... = pr only (one dimension)
 
 Axis names in ``[grid]``:
 
@@ -73,11 +74,13 @@ PUSH_KEYS = ("magnitude", "direction", "at", "duration")
 PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": 1.0, "duration": 0.15}
 PERTURB_KEYS = ("base_linear", "base_angular", "joints")
 TUNE_KEYS = {"rounds": int, "points": int, "shrink": float, "pole_min": float,
-             "pole_max": float, "objective": list, "barrier": str}
-TUNE_DEFAULTS = {"rounds": 3, "points": 4, "shrink": 0.5, "pole_min": 0.5, "pole_max": 200.0}
+             "pole_max": float, "objective": list, "barrier": str, "equal_poles": bool}
+TUNE_DEFAULTS = {"rounds": 3, "points": 4, "shrink": 0.5, "pole_min": 0.5, "pole_max": 200.0,
+                 "equal_poles": False}
 GAIN_TABLES = ("kp", "kd", "weight")
 SCALES = ("kp_scale", "kd_scale", "weight_scale", "gain_scale")
 MAX_ROLLOUTS = 10_000_000
+OBJECTIVE_METRICS = ("torque_ratio_max", "foot_slip_max")   # besides tracking_rms.OUTPUT
 
 
 class SpecError(ValueError):
@@ -436,16 +439,20 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
             if not isinstance(v, list) or not v or not all(isinstance(x, str) for x in v):
                 raise SpecError(f"{src}: tune.objective = {_fmt(v)}: expected a non-empty list "
                                 "of metric names such as \"tracking_rms.com\"")
+            allowed = [f"tracking_rms.{o}" for o in outputs] + list(OBJECTIVE_METRICS)
             for x in v:
-                if not (x.startswith("tracking_rms.") and x.split(".", 1)[1] in outputs):
+                if x not in allowed:
                     raise SpecError(f"{src}: tune.objective = {_fmt(v)}: {x!r} is not a "
-                                    "tracking metric of this scenario; use "
-                                    f"{', '.join('tracking_rms.' + o for o in outputs)}")
+                                    f"metric to minimize in this scenario; use {', '.join(allowed)}")
             tune[k] = list(v)
         elif k == "barrier":
             if not isinstance(v, str) or v not in barriers:
                 raise SpecError(f"{src}: tune.barrier = {_fmt(v)}: not an enforced barrier of "
                                 f"{scenario!r}; enforced: {list(barriers) or 'none'}")
+            tune[k] = v
+        elif k == "equal_poles":
+            if not isinstance(v, bool):
+                raise SpecError(f"{src}: tune.equal_poles = {_fmt(v)}: expected true or false")
             tune[k] = v
         elif k in ("rounds", "points"):
             tune[k] = _number(src, f"tune.{k}", v, positive=True, integer=True)

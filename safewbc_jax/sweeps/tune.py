@@ -149,15 +149,23 @@ def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, execut
         raise SpecError(f"{spec.path}: Theorem 1 needs p1 >= {p1_bound:.4g} at the perturbed "
                         f"start states, above the search box's upper end {np.exp(hi[0]):.4g}; "
                         "raise tune.pole_max or reduce [perturb]")
-    say(f"[tune] {name}: {r} poles, {spec.tune['rounds']} rounds of {spec.tune['points']}^{r} "
-        f"candidates x {d_rollouts} rollouts; Theorem 1 needs p1 >= {p1_bound:.4g}")
+    dim = 1 if spec.tune.get("equal_poles") else r
+    say(f"[tune] {name}: {r} poles{' (equal)' if dim == 1 else ''}, {spec.tune['rounds']} rounds "
+        f"of {spec.tune['points']}^{dim} candidates x {d_rollouts} rollouts; Theorem 1 needs "
+        f"p1 >= {p1_bound:.4g}")
 
     history: list[Candidate] = []
     rounds = []
     best = None
     for i in range(spec.tune["rounds"]):
         axes_vals = [np.exp(np.linspace(lo[j], hi[j], spec.tune["points"])) for j in range(r)]
-        cand = np.stack([x.reshape(-1) for x in np.meshgrid(*axes_vals, indexing="ij")], axis=1)
+        if spec.tune.get("equal_poles"):
+            # one dimension: p1 = ... = pr over the intersection of the boxes
+            a, b = np.max(lo), np.min(hi)
+            cand = np.repeat(np.exp(np.linspace(a, max(a, b), spec.tune["points"]))[:, None], r, 1)
+        else:
+            cand = np.stack([x.reshape(-1) for x in np.meshgrid(*axes_vals, indexing="ij")],
+                            axis=1)
         cand = np.unique(np.round(cand, 10), axis=0)
         ok = admissible.admissible_mask(name, cand, etas)
         cand = cand[ok]
