@@ -35,11 +35,55 @@ def constraint_jacobian(model: robot.RobotModel, q, kin=None):
                             contacts.stacked_contact_jacobian(model, q, kin)], axis=0)
 
 
+def constraint_drift(model: robot.RobotModel, kin, motion: robot.BodyMotion):
+    """J_dot v of [J_chain; J_cont] (22) in closed form from the body motion of the state.
+
+    A rod row is u^T (J_a - J_b) with u = d / |d|, d = p_a - p_b: its drift is
+    (|d_dot|^2 - (u . d_dot)^2) / |d| + u . (a_a - a_b), a the points' bias
+    accelerations; a spring row is constant (drift 0). A contact row block is
+    [R^T x_dot; R^T omega] with R the sole frame (R_dot = omega x R): its drift is
+    [R^T (a - omega x x_dot); R^T alpha]."""
+    xpos, xrot = kin
+    ba, pa = chains._site_points(model, xpos, xrot, [a for a, _ in model.rod_sites])
+    bb, pb = chains._site_points(model, xpos, xrot, [b for _, b in model.rod_sites])
+    va, vb = motion.point_velocity(ba, pa), motion.point_velocity(bb, pb)
+    d, dd = pa - pb, va - vb
+    dist = jnp.linalg.norm(d, axis=1)
+    u = d / dist[:, None]
+    u_dd = jnp.sum(u * dd, axis=1)
+    rod = ((jnp.sum(dd * dd, axis=1) - u_dd * u_dd) / dist
+           + jnp.sum(u * (motion.point_bias(ba, pa, va) - motion.point_bias(bb, pb, vb)), axis=1))
+    zero = jnp.zeros((), rod.dtype)
+    chain = jnp.stack([rod[i] if kind == "rod" else zero for kind, i in chains._order(model)])
+    sites = [model.site_id(f) for f in contacts.FEET]
+    bodies = np.array([model.site_body[s] for s in sites])
+    p = xpos[bodies] + jnp.einsum("nij,nj->ni", xrot[bodies], model.site_pos[np.array(sites)])
+    r = xrot[bodies] @ model.site_rot[np.array(sites)]
+    xd = motion.point_velocity(bodies, p)
+    lin = motion.point_bias(bodies, p, xd) - jnp.cross(motion.omega[bodies], xd)
+    world = jnp.concatenate([lin, motion.alpha[bodies]], axis=1).reshape(-1, 2, 3)
+    cont = jnp.einsum("nji,nkj->nki", r, world).reshape(-1)  # R^T per foot and block
+    return jnp.concatenate([chain, cont])
+
+
 def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
     """Every robot-dependent term of one control step: one forward-kinematics pass gives
-    the body, chain and contact Jacobians, and one forward-mode tangent of it along q_dot
-    all their drift terms (XLA on the CPU pays per operation: sharing the passes halves
-    the cost of computing them one by one)."""
+    the body, chain and contact Jacobians, and the closed-form body motion
+    (``robot.body_motion``) all their drift terms: XLA on the CPU pays per operation, and
+    a forward-mode tangent of the kinematics and Jacobians would triple their count."""
+    kin = robot.forward_kinematics(model, q)
+    bodies = robot.com_jacobians(model, kin)
+    motion = robot.body_motion(model, kin, v)
+    dyn = robot.dynamics_from_motion(model, bodies, motion)
+    dyn["domain"] = domain
+    outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
+    return Terms(dyn["M"], dyn["h"], constraint_jacobian(model, q, kin),
+                 constraint_drift(model, kin, motion), outs, kin)
+
+
+def robot_terms_ad(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
+    """``robot_terms`` with every drift term by one forward-mode tangent of the kinematics
+    and Jacobians along q_dot (the reference the closed form is tested against)."""
     def jacobians(qq):
         kin = robot.forward_kinematics(model, qq)
         return robot.com_jacobians(model, kin), constraint_jacobian(model, qq, kin), kin

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -317,6 +318,72 @@ def body_com(model: RobotModel, xpos, xrot):
     return com, irot
 
 
+def _dof_bodies(model: RobotModel) -> np.ndarray:
+    """The body each dof moves with its own joint (static): the free joint's six dofs
+    belong to the root body, a hinge's dof to the hinge's body."""
+    out = np.zeros(model.nv, dtype=int)
+    for b, (t, d) in enumerate(zip(model.body_jtype, model.body_dadr)):
+        if t == FREE:
+            out[d:d + 6] = b
+        elif t == HINGE:
+            out[d] = b
+    return out
+
+
+class BodyMotion(NamedTuple):
+    """Velocity and bias acceleration of every body, as world-frame twists about the
+    world origin [nb, 3] each: a point x fixed on body b moves with
+
+        x_dot = omega_b x x + c_b,      J_p_dot v = alpha_b x x + gamma_b + omega_b x x_dot,
+
+    and J_r_dot v = alpha_b (the bias terms: q_ddot = 0)."""
+
+    omega: jax.Array
+    c: jax.Array
+    alpha: jax.Array
+    gamma: jax.Array
+
+    def point_velocity(self, bodies, x):
+        return jnp.cross(self.omega[bodies], x) + self.c[bodies]
+
+    def point_bias(self, bodies, x, xdot=None):
+        """J_p_dot v of points x [n, 3] fixed on ``bodies``."""
+        w = self.omega[bodies]
+        xdot = self.point_velocity(bodies, x) if xdot is None else xdot
+        return jnp.cross(self.alpha[bodies], x) + self.gamma[bodies] + jnp.cross(w, xdot)
+
+
+def body_motion(model: RobotModel, kin, v) -> BodyMotion:
+    """Body velocities and the drift (bias) accelerations of every body in closed form.
+
+    With the per-dof motion of ``_dof_motion`` (axis w_k, anchor o_k, translation t_k),
+    a point x of body b has J_p v = sum_k m_bk (w_k x (x - o_k) + t_k) v_k, m the
+    ancestor mask. Along the motion with v held fixed, the axis of dof k turns with its
+    body, w_k_dot = omega_(b(k)) x w_k, and its anchor moves with that body's origin,
+    o_k_dot = omega_(b(k)) x o_k + c_(b(k)); t_k is fixed. Differentiating J_p v gives
+
+        J_p_dot v = sum_k m_bk v_k (w_k_dot x (x - o_k) + w_k x (x_dot - o_k_dot))
+                  = alpha_b x x + omega_b x x_dot + gamma_b,
+        alpha_b = sum_k m_bk v_k w_k_dot,
+        gamma_b = -sum_k m_bk v_k (w_k_dot x o_k + w_k x o_k_dot),
+
+    two products with the mask instead of a forward-mode tangent of the kinematics (XLA on
+    the CPU pays per operation, and the tangent of the level-by-level kinematics and its
+    Jacobians costs three times as many operations as the kinematics)."""
+    xpos, xrot = kin
+    w, o, t = _dof_motion(model, xpos, xrot)
+    mask = model.ancestor_dof
+    vv = v[:, None]
+    vel = mask @ jnp.concatenate([w * vv, (t - jnp.cross(w, o)) * vv], axis=1)  # [nb, 6]
+    omega, c = vel[:, :3], vel[:, 3:]
+    db = _dof_bodies(model)
+    wdot = jnp.cross(omega[db], w)
+    odot = jnp.cross(omega[db], o) + c[db]
+    acc = mask @ jnp.concatenate([wdot * vv, -(jnp.cross(wdot, o) + jnp.cross(w, odot)) * vv],
+                                 axis=1)
+    return BodyMotion(omega=omega, c=c, alpha=acc[:, :3], gamma=acc[:, 3:])
+
+
 def _com_jacobians(model: RobotModel, q):
     xpos, xrot = forward_kinematics(model, q)
     com, irot = body_com(model, xpos, xrot)
@@ -335,18 +402,23 @@ def mass_matrix(model: RobotModel, q):
 
 def bias_forces(model: RobotModel, q, v):
     """h(q, v) = C(q, v) v + G(q): Coriolis, centrifugal and gravity forces (nv)."""
+    return dynamics_and_com(model, q, v)["h"]
+
+
+def bias_forces_ad(model: RobotModel, q, v):
+    """``bias_forces`` with the body accelerations by forward-mode AD of the Jacobians (the
+    reference the closed-form ``body_motion`` is checked against)."""
     def jv(qq):
         jp, jr, _ = _com_jacobians(model, qq)
         return jp @ v, jr @ v
 
     jp, jr, irot = _com_jacobians(model, q)
-    vel, omega = jp @ v, jr @ v
+    omega = jr @ v
     acc, alpha = spatial.derivative_along(jv, q, v)
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
     force = model.body_mass[:, None] * (acc - model.gravity[None])
     iw = jnp.einsum("bij,bj->bi", iworld, omega)
     torque = jnp.einsum("bij,bj->bi", iworld, alpha) + jnp.cross(omega, iw)
-    del vel
     return jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
 
 
@@ -359,13 +431,25 @@ def com_jacobians(model: RobotModel, kin):
     return jp, jr, irot, com
 
 
+def dynamics_from_motion(model: RobotModel, bodies, motion: BodyMotion):
+    """M, h and the CoM terms from the body Jacobians ``bodies`` = com_jacobians(...) and
+    the closed-form body motion ``motion`` = body_motion(...) of the same state."""
+    jp, jr, irot, com = bodies
+    nb = len(model.body_names)
+    every = np.arange(nb)
+    acc = motion.point_bias(every, com)
+    return _dynamics(model, jp, jr, irot, com, acc, motion.alpha, motion.omega)
+
+
 def dynamics_from_jacobians(model: RobotModel, bodies, dbodies, v):
     """M, h and the CoM terms from the body Jacobians ``bodies`` = com_jacobians(...) and
-    their tangent ``dbodies`` along q_dot (see ``dynamics_and_com``)."""
+    their tangent ``dbodies`` along q_dot (forward-mode AD)."""
     jp, jr, irot, com = bodies
     djp, djr = dbodies[0], dbodies[1]
-    acc, alpha = djp @ v, djr @ v
-    omega = jr @ v
+    return _dynamics(model, jp, jr, irot, com, djp @ v, djr @ v, jr @ v)
+
+
+def _dynamics(model, jp, jr, irot, com, acc, alpha, omega):
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
     mass = jnp.einsum("b,bin,bim->nm", model.body_mass, jp, jp)
     mass = mass + jnp.einsum("bin,bij,bjm->nm", jr, iworld, jr) + jnp.diag(model.armature)
@@ -381,13 +465,10 @@ def dynamics_from_jacobians(model: RobotModel, bodies, dbodies, v):
 
 def dynamics_and_com(model: RobotModel, q, v):
     """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v from one pass over the body Jacobians
-    and one forward-mode tangent of them (equal to ``mass_matrix``, ``bias_forces``,
+    and the closed-form body motion (equal to ``mass_matrix``, ``bias_forces``,
     ``com_position``, ``com_jacobian``, ``com_drift``)."""
-    def jacs(qq):
-        return com_jacobians(model, forward_kinematics(model, qq))
-
-    bodies, dbodies = jax.jvp(jacs, (q,), (spatial.config_rate(q, v),))
-    return dynamics_from_jacobians(model, bodies, dbodies, v)
+    kin = forward_kinematics(model, q)
+    return dynamics_from_motion(model, com_jacobians(model, kin), body_motion(model, kin, v))
 
 
 def actuation_matrix(model: RobotModel):
