@@ -96,6 +96,7 @@ def sweeps(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2400)   # the module's sweeps run in this test's setup
 def test_killed_sweep_keeps_a_readable_table_and_resumes(sweeps):
     k = sweeps["killed"]
     assert k["rc"] == -signal.SIGKILL
@@ -147,6 +148,7 @@ def test_same_seed_same_table_on_one_and_two_devices(sweeps):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2400)
 def test_notebook_runs_in_small_configuration(tmp_path):
     """notebooks/tune_barrier_poles.ipynb end to end (sweep, report, tune, deployment run)
     in its small configuration, in a fresh kernel."""

@@ -281,3 +281,30 @@ def test_cli_sweep_help_lists_options():
     assert r.returncode == 0
     for opt in ("--out", "--batch", "--seed"):
         assert opt in r.stdout
+
+
+def test_theorem1_bounds_used_by_tuning():
+    """The first pole's bound -h_dot / h over the start states, and the admissibility mask
+    (barriers.check_poles at every start state) on both sides of it."""
+    from safewbc_jax.sweeps.admissible import admissible_mask, first_pole_bound
+
+    etas = np.array([[0.05, 0.02], [0.05, -0.1], [0.04, 0.0]])   # h, h_dot
+    assert first_pole_bound(etas) == pytest.approx(2.0)
+    cand = np.array([[1.9, 5.0], [2.1, 5.0], [2.1, 0.1], [50.0, 50.0]])
+    assert admissible_mask("left_fist", cand, etas).tolist() == [False, True, True, True]
+    assert first_pole_bound(np.array([[0.05, 0.0]])) == 0.0      # at rest: any poles
+
+
+def test_tune_spec_checks(tmp_path):
+    from safewbc_jax.sweeps.tune import _distribution, _initial_box
+
+    s = spec_from(tmp_path, GOOD + "\n[tune]\npole_min = 1.5\npole_max = 50.0\n")
+    lo, hi = _initial_box(s, "left_fist", 2)
+    np.testing.assert_allclose(np.exp(lo), [2.0, 1.5])      # p1 from the grid, p2 from tune
+    np.testing.assert_allclose(np.exp(hi), [8.0, 50.0])
+    axes, rows = _distribution(s, "left_fist")
+    assert [a.name for a in axes] == ["push.magnitude"] and rows[:, 0].tolist() == [0.0, 50.0]
+    bad = spec_from(tmp_path, GOOD.replace('"push.magnitude" = [0.0, 50.0]', "mu = [0.5, 0.9]"),
+                    "g.toml")
+    with pytest.raises(SpecError, match=r"grid axes \['mu'\] are neither"):
+        _distribution(bad, "left_fist")

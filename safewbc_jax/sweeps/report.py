@@ -17,6 +17,7 @@ Figures (only those the swept axes allow):
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -215,7 +216,8 @@ def push_figure(man, cols, oc, path) -> bool:
 
 
 def tracking_figure(man, cols, oc, path) -> bool:
-    outs = [o for o in man.get("outputs", []) if f"tracking_rms.{o}" in cols]
+    outs = [o for o in man.get("outputs", []) if f"tracking_rms.{o}" in cols
+            and np.any(np.isfinite(np.asarray(cols[f"tracking_rms.{o}"], float)))]
     if not outs or not np.any(np.isfinite(oc["hmin"])):
         return False
     plt = _plt()
@@ -229,8 +231,10 @@ def tracking_figure(man, cols, oc, path) -> bool:
         axis.scatter(oc["hmin"][~ok] * 1e3, y[~ok], s=10, marker="x", color="C3",
                      label="violated or fell")
         if ctrl and len(uniq) > 1:
-            hm = np.array([np.nanmean(oc["hmin"][inv == j]) for j in range(len(uniq))])
-            ym = np.array([np.nanmean(y[inv == j]) for j in range(len(uniq))])
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN groups
+                hm = np.array([np.nanmean(oc["hmin"][inv == j]) for j in range(len(uniq))])
+                ym = np.array([np.nanmean(y[inv == j]) for j in range(len(uniq))])
             axis.scatter(hm * 1e3, ym, s=40, facecolors="none", edgecolors="k",
                          label="setting mean")
         axis.axvline(-1e3 * float(man.get("violation_tol", 0.0)), color="k", lw=0.8)

@@ -174,7 +174,7 @@ def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, execut
                             f"the box {np.exp(lo)}..{np.exp(hi)}")
         rows = [tuple(c) + tuple(d) for c in cand for d in dist_rows]
         sub = dataclasses.replace(spec.with_rows(p_axes + dist_axes, rows),
-                                  noise_period=d_rollouts)
+                                  noise_period=d_rollouts, target=name)
         rdir = work / f"round-{i + 1}"
         say(f"[tune] round {i + 1}: {len(cand)} candidates, poles in "
             + " x ".join(f"[{np.exp(lo[j]):.3g}, {np.exp(hi[j]):.3g}]" for j in range(r)))
