@@ -1,0 +1,163 @@
+"""QP solvers of the controller: a qpsolvers-style entry point over the PIQP path and the
+batched JAX solver, and the status codes they share.
+
+    x, status = solve_qp(P, q, G, h, A, b, lb, ub, solver="jax")     # or solver="piqp"
+
+minimizes 1/2 x'Px + q'x subject to G x <= h, A x = b, lb <= x <= ub (the argument order
+and the None-for-absent convention of ``qpsolvers.solve_qp``), for one QP (P of shape
+(n, n)) or a batch (P of shape (B, n, n), every given array with the same leading B).
+
+Returns ``(x, status)``:
+  one QP    x a float64 numpy array, or None when there is no usable solution;
+            status a ``SolveStatus`` (SOLVED, INFEASIBLE, MAX_ITER, NUMERICAL)
+  a batch   x of shape (B, n) with all-NaN rows where there is no usable solution;
+            status an int32 numpy array of the codes
+
+``status`` always describes the QP as posed. With ``fallback=False`` (default, plain
+qpsolvers semantics) x is returned only where status is SOLVED. With ``fallback=True``
+the project's fallback policy applies (``piqp_path.PiqpSolver``): where the QP is not
+solved, the QP with its ``soft`` rows relaxed (``relax.relax_soft_rows``) is solved and
+its x returned (status then still says why the original failed, e.g. INFEASIBLE); x is
+None / NaN only when that fails too ("failed": hold the last good command).
+
+solver="piqp"  the PIQP path (``piqp_path``): ``PiqpSolver`` with the fallback,
+               ``solve_qp_piqp`` without; a batch is solved one QP after the other.
+               Extra keyword arguments are PIQP settings (eps_abs, max_iter, ...).
+solver="jax"   ``jax_qp`` (pure JAX, batched). ``structure="auto"`` uses the controller's
+               structure (``jax_qp.solve_batch``: the equalities eliminated through the
+               actuated rows, a 20-variable QP in the torques) when the QP has it
+               (``jax_qp.has_controller_structure`` with ``nv``, ``nu``), else the generic
+               null-space path (``jax_qp.solve_generic_batch``, A of full row rank);
+               "controller" / "generic" force one. ``dtype`` float64 (default) or float32;
+               ``settings`` a ``jax_qp.Settings``. Compiled once per shape, dtype and
+               settings; a batch is solved in one call.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from safewbc_jax.solvers.status import INFEASIBLE, MAX_ITER, NUMERICAL, SOLVED, SolveStatus
+
+SOLVERS = ("jax", "piqp")
+_FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
+
+
+def _as_qp(P, q, G, h, A, b, lb, ub, soft):
+    """Stacked float64 numpy QP (leading batch axis added for one QP); (qp, batched)."""
+    from safewbc_jax.qp_types import QP
+
+    P = np.asarray(P, dtype=np.float64)
+    if P.ndim not in (2, 3) or P.shape[-1] != P.shape[-2]:
+        raise ValueError(f"P must be (n, n) or (B, n, n), got shape {P.shape}")
+    batched = P.ndim == 3
+    if not batched:
+        P = P[None]
+    nb, n = P.shape[0], P.shape[-1]
+
+    def arr(v, trailing, fill, name):
+        if v is None:
+            return np.full((nb,) + trailing, fill, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        if not batched:
+            v = v[None]
+        if v.shape[0] != nb or v.shape[1:] != trailing:
+            raise ValueError(f"{name}: expected shape {(nb,) + trailing if batched else trailing}, "
+                             f"got {v.shape if batched else v.shape[1:]}")
+        return v
+
+    if (G is None) != (h is None):
+        raise ValueError("G and h must be given together")
+    if (A is None) != (b is None):
+        raise ValueError("A and b must be given together")
+    mi = 0 if G is None else np.asarray(G).shape[-2]
+    me = 0 if A is None else np.asarray(A).shape[-2]
+    qp = QP(P=P, q=arr(q, (n,), 0.0, "q"),
+            A=arr(A, (me, n), 0.0, "A"), b=arr(b, (me,), 0.0, "b"),
+            G=arr(G, (mi, n), 0.0, "G"), h=arr(h, (mi,), 0.0, "h"),
+            lb=arr(lb, (n,), -np.inf, "lb"), ub=arr(ub, (n,), np.inf, "ub"),
+            soft=arr(soft, (mi,), 0.0, "soft"))
+    return qp, batched
+
+
+def _piqp(qp, fallback, settings):
+    from safewbc_jax.qp_types import QP
+    from safewbc_jax.solvers.piqp_path import PiqpSolver, solve_qp_piqp
+
+    nb, n = qp.P.shape[0], qp.P.shape[-1]
+    xs = np.full((nb, n), np.nan)
+    st = np.zeros(nb, dtype=np.int32)
+    solver = PiqpSolver(update=False, **settings) if fallback else None
+    for i in range(nb):
+        qpi = QP(*(getattr(qp, f)[i] for f in _FIELDS))
+        if fallback:
+            x, info = solver.solve(qpi)
+            status = info["status"]
+        else:
+            x, status = solve_qp_piqp(qpi, **settings)
+        st[i] = int(status)
+        if x is not None:
+            xs[i] = x
+    return xs, st
+
+
+def _jax(qp, fallback, structure, nv, nu, dtype, settings):
+    import jax.numpy as jnp
+
+    from safewbc_jax.qp_types import QP
+    from safewbc_jax.solvers import jax_qp, reduce
+
+    if structure not in ("auto", "controller", "generic"):
+        raise ValueError(f"structure must be 'auto', 'controller' or 'generic', got {structure!r}")
+    use_ctrl = structure == "controller" or (
+        structure == "auto" and jax_qp.has_controller_structure(qp, nv, nu))
+    qpj = QP(*(jnp.asarray(getattr(qp, f)) for f in _FIELDS))
+    if use_ctrl:
+        bounded = reduce.bounded_variables(QP(*(getattr(qp, f)[0] for f in _FIELDS)), nv, nu)
+        # bounds must be finite at the same places in every QP of the batch
+        fin = np.isfinite(qp.lb) | np.isfinite(qp.ub)
+        if not np.all(fin == fin[0]):
+            raise ValueError("structure='controller' needs the finite bounds at the same "
+                             "indices in every QP of the batch")
+        res = jax_qp.solve_batch(qpj, nv=nv, nu=nu, bounded=bounded, dtype=dtype,
+                                 settings=settings)
+    else:
+        res = jax_qp.solve_generic_batch(qpj, dtype=dtype, settings=settings)
+    x = np.asarray(res.x, dtype=np.float64)
+    status = np.asarray(res.status, dtype=np.int32)
+    usable = (np.asarray(res.fallback) != jax_qp.FALLBACK_FAILED) if fallback else status == SOLVED
+    x = np.where(usable[:, None], x, np.nan)
+    return x, status
+
+
+def solve_qp(P, q, G=None, h=None, A=None, b=None, lb=None, ub=None, solver: str = "jax", *,
+             soft=None, fallback: bool = False, structure: str = "auto", nv: int = 36,
+             nu: int = 20, dtype=None, settings=None, initvals=None, **solver_settings):
+    """Solve one QP or a batch with ``solver`` "jax" or "piqp"; see the module docstring.
+
+    ``soft``: (mi,) 1.0 on the rows of G that the fallback may relax (default none).
+    ``initvals``: accepted for qpsolvers compatibility and ignored (neither solver warm
+    starts: PIQP 0.7 has no initial-iterate input, the JAX solver starts each batch cold).
+    """
+    del initvals
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; expected one of {SOLVERS}")
+    qp, batched = _as_qp(P, q, G, h, A, b, lb, ub, soft)
+    if solver == "piqp":
+        if dtype is not None or settings is not None:
+            raise ValueError("dtype and settings apply to solver='jax' only "
+                             "(PIQP settings go as keyword arguments)")
+        x, status = _piqp(qp, fallback, solver_settings)
+    else:
+        if solver_settings:
+            raise ValueError(f"unknown arguments for solver='jax': {sorted(solver_settings)} "
+                             "(pass a jax_qp.Settings as settings=)")
+        x, status = _jax(qp, fallback, structure, nv, nu, dtype, settings)
+    if batched:
+        return x, status
+    x0 = x[0]
+    return (None if not np.all(np.isfinite(x0)) else x0), SolveStatus(int(status[0]))
+
+
+__all__ = ["solve_qp", "SOLVERS", "SolveStatus", "SOLVED", "INFEASIBLE", "MAX_ITER",
+           "NUMERICAL"]

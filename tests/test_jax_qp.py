@@ -1,0 +1,338 @@
+"""The batched JAX QP solver (safewbc_jax/solvers/jax_qp.py) against PIQP on recorded
+controller QPs, and the qpsolvers-style ``solve_qp`` over both solvers.
+
+Data: tests/data/controller_qps.npz (QPs recorded from closed-loop runs of every scenario,
+PIQP statuses included). Without it, 48 arms-scenario QPs are generated at random states
+(one controller compile, ~20 s).
+
+Infeasible instances are derived deterministically from recorded ones (``_conflict``): the
+QP is reduced exactly to the torques (X = x0 + N u, ``reduce.eliminate_equalities_np``),
+so the least value that row i of G can take over the torque box is
+g0 + sum_j min(g_j lb_j, g_j ub_j) with g = G_i N, g0 = G_i x0; h_i is set below it by
+``frac`` of the row's range over the box. The row then contradicts the torque limits:
+  * on a soft row (the largest ZMP/barrier row in the reduced space) the QP is infeasible
+    but its relaxation is not (the recorded solution satisfies every hard row):
+    PIQP and the JAX solver must both report INFEASIBLE and fall back to "relaxed";
+  * on a hard row (the largest friction/contact row) the relaxation is infeasible too:
+    both must report INFEASIBLE and "failed" (JAX: x all NaN, to be ignored by the caller,
+    who holds its last torque; PIQP path: x None).
+
+Reference solutions: PIQP at tight tolerances; on the QPs where those do not converge
+within 60 iterations (the arms runs without barrier), PIQP at eps_abs 1e-10, eps_rel
+1e-12. PIQP's defaults leave x up to ~5e-5 (relative) from the exact optimum on these
+QPs (the internal-force directions of lambda cost only the small Gamma), too loose for the
+1e-6 agreement checked here.
+
+Runs in ~1 minute on a 2-core CPU (five XLA compiles of ~8 s each dominate).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers import (INFEASIBLE, MAX_ITER, SOLVED, SolveStatus, jax_qp, reduce,
+                                 solve_qp)
+from safewbc_jax.solvers.piqp_path import PiqpSolver, residuals, solve_qp_piqp
+
+FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
+FIXTURE = Path(__file__).parent / "data" / "controller_qps.npz"
+NV, NU = 36, 20
+TIGHT = {"eps_abs": 1e-12, "eps_rel": 1e-14, "eps_duality_gap_abs": 1e-12,
+         "eps_duality_gap_rel": 1e-14, "max_iter": 60}
+REF = {"eps_abs": 1e-10, "eps_rel": 1e-12}
+N_INFEAS = 6        # soft-infeasible and hard-infeasible instances each
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_blas_thread():
+    """jaxlib's CPU LAPACK kernels run on scipy's OpenBLAS; its worker threads, left
+    spinning after a call, compete with XLA's thread pool on this 2-core machine and can
+    slow the solver tenfold. One thread for this module, restored afterwards."""
+    with jax_qp.blas_threads(1):
+        yield
+
+
+def _generate(n=48):
+    import mujoco
+
+    from safewbc_jax import controller, paths, robot, scenarios
+
+    mj = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
+    rm = robot.from_mujoco(mj)
+    sc = scenarios.get_scenario("arms")
+    params = sc.default_params()
+    q0 = jnp.asarray(mj.key_qpos[0])
+    start = scenarios.start_state(rm, q0)
+    start["y0"] = controller.output_start_values(rm, sc, q0)
+
+    def fn(q, v, tau):
+        terms = controller.robot_terms(rm, sc, q, v)
+        return controller.build_qp(rm, sc, params, terms, q, v, tau, start, jnp.ones(2))[0]
+
+    rng = np.random.default_rng(0)
+    qs = np.tile(mj.key_qpos[0], (n, 1))
+    qs[:, 7:] += rng.uniform(-0.05, 0.05, (n, mj.nq - 7))
+    vs = rng.normal(0, 1, (n, rm.nv)) * rng.uniform(0.05, 1.0, (n, 1))
+    qp = jax.jit(jax.vmap(fn))(qs, vs, rng.uniform(-1.5, sc.duration, n))
+    return {f: np.asarray(getattr(qp, f)) for f in FIELDS}
+
+
+def _take(data, i) -> QP:
+    return QP(*(np.asarray(data[f][i]) for f in FIELDS))
+
+
+def _conflict(qp: QP, soft: bool, frac: float) -> tuple[QP, int, float]:
+    """(QP with row i below its least value over the torque box, i, the gap); see the
+    module docstring."""
+    red, rmap = reduce.eliminate_equalities_np(qp, NV, NU)
+    rows = np.flatnonzero((qp.soft > 0) == soft)
+    i = rows[np.argmax(np.abs(red.G[rows]).sum(axis=1))]
+    g = red.G[i]
+    lo = np.minimum(g * red.lb, g * red.ub).sum()
+    hi = np.maximum(g * red.lb, g * red.ub).sum()
+    gap = frac * (hi - lo)
+    h = qp.h.copy()
+    h[i] = qp.G[i] @ rmap.x0 + lo - gap
+    return QP(qp.P, qp.q, qp.A, qp.b, qp.G, h, qp.lb, qp.ub, qp.soft), int(i), float(gap)
+
+
+@pytest.fixture(scope="module")
+def data():
+    """The recorded QPs (stacked numpy fields) plus the derived infeasible ones at the end:
+    N_INFEAS soft-infeasible, then N_INFEAS hard-infeasible."""
+    if FIXTURE.exists():
+        d = np.load(FIXTURE)
+        out = {f: d[f"qp_{f}"].astype(np.float64) for f in FIELDS}   # stored as float32
+        recorded_status = d["qp_status"]
+    else:
+        out = _generate()
+        recorded_status = None
+    nrec = out["P"].shape[0]
+    picks = np.linspace(0, nrec - 1, N_INFEAS).astype(int)
+    extra, meta = [], []
+    for soft in (True, False):
+        for k, i in enumerate(picks):
+            frac = 1e-2 if k % 2 == 0 else 1e-4      # clear and marginal contradictions
+            qp, row, gap = _conflict(_take(out, i), soft, frac)
+            extra.append(qp)
+            meta.append((soft, row, gap))
+    for f in FIELDS:
+        out[f] = np.concatenate([out[f], np.stack([getattr(q, f) for q in extra])])
+    return {"qps": out, "nrec": nrec, "meta": meta, "recorded_status": recorded_status}
+
+
+@pytest.fixture(scope="module")
+def jax_result(data):
+    """One batched JAX solve of every QP (recorded and derived)."""
+    qps = QP(*(jnp.asarray(data["qps"][f]) for f in FIELDS))
+    res = jax_qp.solve_batch(qps)
+    return jax.tree_util.tree_map(np.asarray, res)
+
+
+@pytest.fixture(scope="module")
+def piqp_ref(data):
+    """PIQP's solution of every recorded QP (tight, else REF tolerances), no fallback."""
+    xs, sts = [], []
+    for i in range(data["nrec"]):
+        qp = _take(data["qps"], i)
+        x, st = solve_qp_piqp(qp, **TIGHT)
+        if st != SolveStatus.SOLVED:
+            x, st = solve_qp_piqp(qp, **REF)
+        xs.append(x)
+        sts.append(st)
+    return xs, sts
+
+
+# ---------------------------------------------------------------- recorded QPs
+
+def test_recorded_qps_agree_with_piqp(data, jax_result, piqp_ref):
+    nrec = data["nrec"]
+    xs, sts = piqp_ref
+    r = jax_result
+    assert all(s == SolveStatus.SOLVED for s in sts)
+    if data["recorded_status"] is not None:          # the statuses recorded at run time
+        np.testing.assert_array_equal(data["recorded_status"], SOLVED)
+    np.testing.assert_array_equal(r.status[:nrec], SOLVED)
+    np.testing.assert_array_equal(r.fallback[:nrec], jax_qp.FALLBACK_NONE)
+    assert r.polished[:nrec].all()                   # exact active-set KKT points
+    err = [np.abs(r.x[i] - xs[i]).max() / max(1.0, np.abs(xs[i]).max()) for i in range(nrec)]
+    assert max(err) <= 1e-6, f"max relative |X - X_piqp| = {max(err):.2e}"
+    # residuals of the returned X in the full (78-variable) QP, absolute
+    assert r.eq_residual[:nrec].max() <= 1e-8
+    assert r.ineq_violation[:nrec].max() <= 1e-8
+    for i in range(0, nrec, max(1, nrec // 50)):     # recomputed independently
+        eq, ineq, _ = residuals(r.x[i], _take(data["qps"], i))
+        assert eq <= 1e-8 and ineq <= 1e-8
+
+
+def test_recorded_qps_kkt_certificate(data, jax_result):
+    """Optimality without a second solver: from the active set of the JAX solution,
+    least-squares multipliers must satisfy stationarity and have the right signs."""
+    r = jax_result
+    nrec = data["nrec"]
+    for i in range(0, nrec, max(1, nrec // 40)):
+        qp = _take(data["qps"], i)
+        x = r.x[i]
+        scale = 1.0 + np.abs(qp.h).max() + np.abs(qp.ub[np.isfinite(qp.ub)]).max()
+        act_g = qp.G @ x - qp.h > -1e-9 * scale
+        act_u = np.isfinite(qp.ub) & (x - qp.ub > -1e-9 * scale)
+        act_l = np.isfinite(qp.lb) & (qp.lb - x > -1e-9 * scale)
+        eye = np.eye(x.size)
+        C = np.vstack([qp.A, qp.G[act_g], eye[act_u], -eye[act_l]])
+        grad = qp.P @ x + qp.q
+        mult, *_ = np.linalg.lstsq(C.T, -grad, rcond=None)
+        gscale = 1.0 + np.abs(grad).max()
+        assert np.abs(grad + C.T @ mult).max() <= 1e-8 * gscale, i
+        assert mult[qp.A.shape[0]:].min(initial=0.0) >= -1e-7 * gscale, i
+
+
+# ---------------------------------------------------------------- infeasible QPs, fallback
+
+def test_infeasible_statuses_and_fallback_agree_with_piqp(data, jax_result):
+    nrec = data["nrec"]
+    r = jax_result
+    piqp = PiqpSolver(update=False, **REF)
+    for k, (soft, row, gap) in enumerate(data["meta"]):
+        j = nrec + k
+        qp = _take(data["qps"], j)
+        x_p, info = piqp.solve(qp)
+        expect = "relaxed" if soft else "failed"
+        assert info["status"] == SolveStatus.INFEASIBLE and info["fallback"] == expect, k
+        assert r.status[j] == INFEASIBLE, k                     # certified, not MAX_ITER
+        assert jax_qp.FALLBACK_NAMES[r.fallback[j]] == expect, k
+        if soft:
+            assert r.relaxed_status[j] == SOLVED
+            # equalities, hard rows and bounds hold; the soft row gives at least the gap
+            assert r.eq_residual[j] <= 1e-8 and r.hard_violation[j] <= 1e-8
+            assert r.max_slack[j] >= gap * (1 - 1e-6)
+            assert r.max_slack[j] == pytest.approx(info["max_slack"], rel=1e-5, abs=1e-8)
+            assert np.abs(r.x[j] - x_p).max() <= 1e-6 * max(1.0, np.abs(x_p).max()), k
+        else:
+            assert r.relaxed_status[j] == INFEASIBLE
+            # what the caller gets for a failed step: no usable x at all
+            assert np.isnan(r.x[j]).all() and np.isnan(r.max_slack[j]) and x_p is None
+
+
+# ---------------------------------------------------------------- jit / vmap at user level
+
+def test_user_level_jit_vmap_matches_solve_batch(data, jax_result):
+    """``jax_qp.solve`` is a single-QP function: the caller's own jit(vmap(...)) gives the
+    batched results (here 6 recorded QPs, a soft- and a hard-infeasible one)."""
+    nrec = data["nrec"]
+    idx = np.r_[np.linspace(0, nrec - 1, 6).astype(int), nrec, nrec + N_INFEAS]
+    qps = QP(*(jnp.asarray(data["qps"][f][idx]) for f in FIELDS))
+    fn = jax.jit(jax.vmap(lambda qp: jax_qp.solve(qp, nv=NV, nu=NU, p_blockdiag=True)))
+    r = jax.tree_util.tree_map(np.asarray, fn(qps))
+    ref = jax_result
+    np.testing.assert_array_equal(r.status, ref.status[idx])
+    np.testing.assert_array_equal(r.fallback, ref.fallback[idx])
+    assert r.fallback.tolist() == [0] * 6 + [jax_qp.FALLBACK_RELAXED, jax_qp.FALLBACK_FAILED]
+    ok = r.fallback != jax_qp.FALLBACK_FAILED
+    np.testing.assert_allclose(r.x[ok], ref.x[idx][ok], rtol=0,
+                               atol=1e-9 * np.nanmax(np.abs(ref.x)))
+    assert np.isnan(r.x[~ok]).all()
+
+
+# ---------------------------------------------------------------- float32
+
+def test_float32_path(data, piqp_ref):
+    """float32 (the accelerator option) at loose tolerances: the reduced Hessian's
+    condition number (~1e7) is about 1/eps32, so X is only good to ~1e-2 relative
+    (torques to ~1% of their limits); statuses and feasibility hold."""
+    nrec = data["nrec"]
+    idx = np.linspace(0, nrec - 1, 64).astype(int)
+    args = [data["qps"][f][idx] for f in ("P", "q", "G", "h", "A", "b", "lb", "ub")]
+    x, status = solve_qp(*args, solver="jax", dtype=jnp.float32)
+    np.testing.assert_array_equal(status, SOLVED)
+    assert np.isfinite(x).all()
+    xs = np.stack([piqp_ref[0][i] for i in idx])
+    err = np.abs(x - xs).max(axis=1) / np.abs(xs).max(axis=1)
+    assert np.median(err) <= 5e-2 and err.max() <= 0.25
+    torque_limit = data["qps"]["ub"][idx][:, NV:NV + NU]
+    assert (np.abs(x - xs)[:, NV:NV + NU] / torque_limit).max() <= 5e-2
+    for k, i in enumerate(idx):
+        eq, ineq, _ = residuals(x[k], _take(data["qps"], i))
+        assert eq <= 1e-3 * (1 + np.abs(data["qps"]["b"][i]).max())
+        assert ineq <= 1e-3 * (1 + np.abs(data["qps"]["h"][i]).max() + torque_limit[k].max())
+
+
+# ---------------------------------------------------------------- solve_qp, both solvers
+
+def test_solve_qp_single_both_solvers(data, piqp_ref):
+    nrec = data["nrec"]
+    names = ("P", "q", "G", "h", "A", "b", "lb", "ub")
+    i = nrec // 3
+    args = [data["qps"][f][i] for f in names]
+    x_j, st_j = solve_qp(*args, solver="jax")
+    x_p, st_p = solve_qp(*args, solver="piqp", **REF)
+    assert st_j == st_p == SolveStatus.SOLVED and isinstance(x_j, np.ndarray)
+    assert np.abs(x_j - x_p).max() <= 1e-6 * np.abs(x_p).max()
+    soft = data["qps"]["soft"][i]
+    for k, expect in ((0, "relaxed"), (N_INFEAS, "failed")):
+        args = [data["qps"][f][nrec + k] for f in names]
+        for solver in ("jax", "piqp"):
+            x, st = solve_qp(*args, solver=solver)       # plain: no solution
+            assert st == SolveStatus.INFEASIBLE and x is None
+            x, st = solve_qp(*args, solver=solver, soft=soft, fallback=True)
+            assert st == SolveStatus.INFEASIBLE
+            assert (x is None) == (expect == "failed"), (solver, expect)
+    with pytest.raises(ValueError, match="unknown solver"):
+        solve_qp(*args, solver="osqp")
+    with pytest.raises(ValueError, match="together"):
+        solve_qp(data["qps"]["P"][0], data["qps"]["q"][0], G=data["qps"]["G"][0])
+
+
+def test_solve_qp_generic_qps():
+    """QPs without the controller's structure go through the generic (null-space) path;
+    a batch of them, with and without equalities, an unbounded one and an infeasible one,
+    against PIQP."""
+    rng = np.random.default_rng(7)
+    n, me, mi = 8, 3, 6
+    Ps, qs, Gs, hs, As, bs, lbs, ubs = ([] for _ in range(8))
+    for k in range(4):
+        L = rng.normal(size=(n, n))
+        P = L @ L.T + 0.1 * np.eye(n)
+        x0 = rng.uniform(-0.5, 0.5, n)
+        A = rng.normal(size=(me, n))
+        G = rng.normal(size=(mi, n))
+        h = G @ x0 + rng.uniform(0, 0.3, mi) * (rng.random(mi) < 0.5)
+        q = 3 * rng.normal(size=n)
+        if k == 2:                                   # unbounded below: P singular along e0
+            P[0, :] = P[:, 0] = 0.0
+            q[0], G[:, 0], A[:, 0] = -1.0, 0.0, 0.0
+        if k == 3:                                   # infeasible: x_1 >= 2 with ub 1
+            G[0] = 0.0
+            G[0, 1], h[0] = -1.0, -2.0
+        Ps.append(P), qs.append(q), Gs.append(G), hs.append(h), As.append(A)
+        bs.append(A @ x0), lbs.append(np.full(n, -1.0)), ubs.append(np.full(n, 1.0))
+        if k == 2:
+            lbs[-1][0], ubs[-1][0] = -np.inf, np.inf
+    args = [np.stack(v) for v in (Ps, qs, Gs, hs, As, bs, lbs, ubs)]
+    x_j, st_j = solve_qp(*args, solver="jax")
+    x_p, st_p = solve_qp(*args, solver="piqp", **REF)
+    np.testing.assert_array_equal(st_j, st_p)
+    np.testing.assert_array_equal(st_j, [SOLVED, SOLVED, INFEASIBLE, INFEASIBLE])
+    np.testing.assert_allclose(x_j[:2], x_p[:2], atol=1e-7)
+    assert np.isnan(x_j[2:]).all()
+    # no equalities: bounds stay bounds
+    x1, s1 = solve_qp(Ps[0], qs[0], Gs[0], hs[0], lb=lbs[0], ub=ubs[0], solver="jax")
+    x2, s2 = solve_qp(Ps[0], qs[0], Gs[0], hs[0], lb=lbs[0], ub=ubs[0], solver="piqp", **REF)
+    assert s1 == s2 == SolveStatus.SOLVED and np.abs(x1 - x2).max() <= 1e-7
+
+
+def test_iteration_limit_status(data):
+    """Too few iterations: MAX_ITER for the QP as posed and for its relaxation, and the
+    step is reported failed (x all NaN), never a half-converged x."""
+    st = jax_qp.Settings(max_iter=2, polish=False)
+    qps = QP(*(jnp.asarray(data["qps"][f][:2]) for f in FIELDS))
+    r = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, settings=st))
+    np.testing.assert_array_equal(r.status, MAX_ITER)
+    np.testing.assert_array_equal(r.relaxed_status, MAX_ITER)
+    np.testing.assert_array_equal(r.fallback, jax_qp.FALLBACK_FAILED)
+    assert np.isnan(r.x).all()
