@@ -110,6 +110,8 @@ DEFAULT_H = 0.9       # CoM height of the paper (m)
 DEFAULT_G = 9.81
 SWING_HEIGHT = 0.08   # apex of the swing-foot height profile (m)
 SWING_RATE = 5.0      # rate of the paper's smoothing factor s = 1 - exp(-rate tau / T)
+LAND_SPEED = 0.2      # m/s: descent of the "land" swing profile at tau = T and after
+LAND_DEPTH = 0.05     # m: the "land" profile stops descending this far below the ground
 
 
 # --------------------------------------------------------------------------------------
@@ -320,7 +322,8 @@ class SwingReference(NamedTuple):
 
 
 def swing_foot_reference(tau, T, p_sw0, u, height=SWING_HEIGHT, rate=SWING_RATE, z0=0.0,
-                         exact_landing=False):
+                         exact_landing=False, vertical="sine", land_speed=LAND_SPEED, land_depth=LAND_DEPTH,
+                         horizontal="paper", reach=1.0):
     """Swing-foot position reference and its first two time derivatives (analytic).
 
     Horizontal (the paper's formula): ``p_xy(tau) = p_sw0 + s(tau) (u - p_sw0)`` with the
@@ -331,25 +334,66 @@ def swing_foot_reference(tau, T, p_sw0, u, height=SWING_HEIGHT, rate=SWING_RATE,
     divides s by ``1 - exp(-rate)`` so it lands on u at tau = T. ``ds/dtau(0) = rate/T`` is
     not zero: the horizontal velocity reference jumps at lift-off, as in the paper.
 
-    Vertical: ``z(tau) = z0 + height sin(pi tau / T)`` for tau in [0, T] and z0 outside.
-    This differs from the printed ``0.08 sin(2 pi tau / T)``, which returns to 0 at T/2
-    and is negative (foot below the ground) over the second half of the step; with
-    ``pi tau / T`` the foot lifts off at tau = 0, peaks at ``height`` (0.08 m) at mid-step
-    and touches down at tau = T (with vertical velocity ``-height pi / T``)."""
+    ``horizontal="minjerk"`` (static) replaces s by the minimum-jerk blend
+    ``s = 10 sigma^3 - 15 sigma^4 + 6 sigma^5``, sigma = clip(tau / (reach T), 0, 1): zero
+    velocity and acceleration at lift-off, on u from ``reach T`` on. The paper's s
+    starts the swing foot at ``(rate / T) |u - p_sw0|`` (4 m/s for a 0.3 m step), a
+    feed-forward that saturates the hips at every lift-off on this model.
+
+    Vertical, ``vertical="sine"`` (static): ``z(tau) = z0 + height sin(pi tau / T)`` for
+    tau in [0, T] and z0 outside. This differs from the printed ``0.08 sin(2 pi tau / T)``,
+    which returns to 0 at T/2 and is negative (foot below the ground) over the second half
+    of the step; with ``pi tau / T`` the foot lifts off at tau = 0, peaks at ``height``
+    (0.08 m) at mid-step and touches down at tau = T (with vertical velocity
+    ``-height pi / T``, 0.72 m/s for the defaults: a hard landing).
+
+    ``vertical="land"``: with sigma = tau / T and d = v_land T,
+    ``z = z0 + height 16 sigma^2 (1 - sigma)^2 + d sigma^2 (1 - sigma)`` on [0, T]:
+    lift-off with zero velocity, apex ~``height`` near mid-step, back at z0 at tau = T
+    descending at ``v_land`` (``land_speed``, 0.2 m/s by default: a soft landing). After
+    T it keeps descending at v_land down to ``z0 - land_depth`` and stays there: a foot
+    that has not touched down yet is pushed on until it does, so that the contact check
+    ends the step (a reference holding the foot at ground level lets it hover
+    millimetres above the floor, and the step never ends)."""
     dtype = jnp.float64
     tau, T = jnp.asarray(tau, dtype), jnp.asarray(T, dtype)
     p_sw0, u = jnp.asarray(p_sw0, dtype), jnp.asarray(u, dtype)
-    k = rate / T
-    e = jnp.exp(-k * tau)
-    norm = (1.0 - np.exp(-rate)) if exact_landing else 1.0
-    s, ds, dds = (1.0 - e) / norm, k * e / norm, -k * k * e / norm
+    if horizontal == "paper":
+        k = rate / T
+        e = jnp.exp(-k * tau)
+        norm = (1.0 - np.exp(-rate)) if exact_landing else 1.0
+        s, ds, dds = (1.0 - e) / norm, k * e / norm, -k * k * e / norm
+    elif horizontal == "minjerk":
+        tr = reach * T
+        sg = jnp.clip(tau / tr, 0.0, 1.0)
+        on = (tau > 0.0) & (tau < tr)
+        s = sg**3 * (10.0 - 15.0 * sg + 6.0 * sg**2)
+        ds = jnp.where(on, 30.0 * sg**2 * (1.0 - sg) ** 2 / tr, 0.0)
+        dds = jnp.where(on, 60.0 * sg * (1.0 - sg) * (1.0 - 2.0 * sg) / tr**2, 0.0)
+    else:
+        raise ValueError(f"horizontal must be 'paper' or 'minjerk', got {horizontal!r}")
     d = u - p_sw0
-    w = jnp.pi / T
-    inside = (tau >= 0.0) & (tau <= T)
-    ph = jnp.clip(tau, 0.0, T) * w
-    z = jnp.where(inside, z0 + height * jnp.sin(ph), z0)
-    dz = jnp.where(inside, height * w * jnp.cos(ph), 0.0)
-    ddz = jnp.where(inside, -height * w * w * jnp.sin(ph), 0.0)
+    if vertical == "sine":
+        w = jnp.pi / T
+        inside = (tau >= 0.0) & (tau <= T)
+        ph = jnp.clip(tau, 0.0, T) * w
+        z = jnp.where(inside, z0 + height * jnp.sin(ph), z0)
+        dz = jnp.where(inside, height * w * jnp.cos(ph), 0.0)
+        ddz = jnp.where(inside, -height * w * w * jnp.sin(ph), 0.0)
+    elif vertical == "land":
+        sg = jnp.clip(tau / T, 0.0, 1.0)
+        inside = (tau >= 0.0) & (tau <= T)
+        dd = land_speed * T
+        zi = height * 16.0 * sg**2 * (1.0 - sg) ** 2 + dd * sg**2 * (1.0 - sg)
+        dzi = (height * 32.0 * sg * (1.0 - sg) * (1.0 - 2.0 * sg) + dd * (2.0 * sg - 3.0 * sg**2)) / T
+        ddzi = (height * 32.0 * (1.0 - 6.0 * sg + 6.0 * sg**2) + dd * (2.0 - 6.0 * sg)) / T**2
+        z_after = -land_speed * (tau - T)
+        below = z_after > -land_depth  # still descending
+        z = z0 + jnp.where(inside, zi, jnp.where(tau > T, jnp.maximum(z_after, -land_depth), 0.0))
+        dz = jnp.where(inside, dzi, jnp.where((tau > T) & below, -land_speed, 0.0))
+        ddz = jnp.where(inside, ddzi, 0.0)
+    else:
+        raise ValueError(f"vertical must be 'sine' or 'land', got {vertical!r}")
     pos = jnp.concatenate([p_sw0 + s[..., None] * d, z[..., None]], -1)
     vel = jnp.concatenate([ds[..., None] * d, dz[..., None]], -1)
     acc = jnp.concatenate([dds[..., None] * d, ddz[..., None]], -1)

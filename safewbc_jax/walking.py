@@ -25,7 +25,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import alip, outputs, references, robot, scenarios
+from safewbc_jax import alip, chains, outputs, references, robot, scenarios
 from safewbc_jax.params import make_params
 
 H_WALK = 0.9            # CoM height (m), paper
@@ -42,12 +42,56 @@ START_SHIFT = 0.04
 STEP_X = (-0.30, 0.40)
 STEP_Y = (0.12, 0.45)
 LEFT, RIGHT, BOTH = 1.0, -1.0, 0.0
+SWING_HORIZONTAL = "minjerk"
+EARLY_TOUCHDOWN = 0.2   # x weight: swing-sole force that ends a step between T/2 and T
+TOUCH_FORCE = 5.0       # N: swing-sole force that ends a step from T on
 
 
 def _swing_select(domain, left_val, right_val):
     """The swing foot's value: in left stance the right foot swings."""
     stance = domain["stance"]
     return jnp.where(stance > 0, right_val, left_val)
+
+
+def passive_dofs(model):
+    """Velocity indices of the unactuated hinges (per leg: shin and heel springs, tarsus,
+    toe pitch and roll), the dofs that the closed chains (eq. 2) determine."""
+    b = np.asarray(model.B)
+    return np.array([k for k in range(6, model.nv) if not np.any(b[k] != 0.0)])
+
+
+def _leg_passive_dofs(model, side):
+    names = [model.joint_names[model.body_dadr.index(k)] for k in passive_dofs(model)]
+    return np.array([k for k, n in zip(passive_dofs(model), names) if n.startswith(side)])
+
+
+def rigid_spring_velocity(model, q, v, stance):
+    """v_r: the measured velocity with the swing leg's springs held rigid, as the
+    controller models them (the paper's n_kc holds q_shin and q_heel-spring fixed).
+    ``stance``: +1 left stance (the right leg is rigidified), -1 right stance, 0 double
+    support (v unchanged).
+
+    In the simulator the springs are stiff but undamped. Fed back through the swing
+    outputs, the QP's drift and Coriolis terms, their ~30 Hz ringing makes the swing-leg
+    loop non-collocated: the leg then oscillates with bang-bang hip and knee torques
+    (swing-foot height jumping by +-4 cm every 30 ms, torques in phase with the knee
+    velocity). v_r keeps every rate but the swing leg's passive ones (springs, tarsus,
+    toe pitch and roll), which are recomputed from that leg's rows of
+    J_chain(q) v_r = 0 with the spring rates at zero: the controller then damps
+    motor-side motion of the swing leg only. A loaded leg keeps its measured rates: there
+    the rigid rates would make the controller believe its sole slides (the feet then do
+    creep, by ~10 cm in 1.5 s of standing). Positions are never changed."""
+    jc = chains.chain_jacobian(model, q)
+    rows = {"left": np.arange(0, jc.shape[0] // 2), "right": np.arange(jc.shape[0] // 2,
+                                                                         jc.shape[0])}
+    out = {}
+    for side in ("left", "right"):
+        pas = _leg_passive_dofs(model, side)
+        rest = np.setdiff1d(np.arange(model.nv), pas)
+        j = jc[rows[side]]
+        vp = -jnp.linalg.solve(j[:, pas], j[:, rest] @ v[rest])
+        out[side] = v.at[pas].set(vp)
+    return jnp.where(stance > 0, out["right"], jnp.where(stance < 0, out["left"], v))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,6 +174,40 @@ def passive_actuators(model, domain):
     return jnp.where(stance > 0, left, 0.0) + jnp.where(stance < 0, right, 0.0)
 
 
+def plan_step(model, q, v, domain):
+    """(ALIP state about the stance sole, the planner's FootPlacement, the step vector u
+    [2] clipped to the leg's reach), heading frame, from the measured state."""
+    heading = domain["heading"]
+    stance = domain["stance"]
+    pl = robot.frame_pose(model, q, "left-sole")[0]
+    pr = robot.frame_pose(model, q, "right-sole")[0]
+    contact = jnp.where(stance > 0, pl, pr)
+    state = alip.alip_state_from_robot(model, q, v, contact, heading)
+    mass = jnp.sum(model.body_mass)
+    side = jnp.where(stance == 0, 1.0, stance)  # +1: the swing foot goes to the right (-y)
+    plan = alip.plan_foot_placement(state.p, state.L, domain["tau_step"], STEP_T, H_WALK, mass,
+                                    -model.gravity[2], domain["v_des"], domain["step_width"],
+                                    side)
+    u = jnp.stack([jnp.clip(plan.u[0], *STEP_X),
+                   -side * jnp.clip(-side * plan.u[1], *STEP_Y)])
+    return state, plan, u
+
+
+def diagnostics(model, q, v, domain):
+    """Per-step walking quantities for the logs (flat array): ALIP p [2], L [2], z, the
+    planned step u [2] (clipped), the predicted end-of-step p_end [2] and L_end [2]."""
+    state, plan, u = plan_step(model, q, v, domain)
+    mom = alip.robot_momentum(model, q, v, jnp.zeros(3))
+    lcom = alip.world_to_heading(alip.alip_momentum(mom.L_com), domain["heading"])
+    vcom = alip.world_to_heading(mom.com_vel[:2], domain["heading"])
+    return jnp.concatenate([state.p, state.L, state.z[None], u, plan.p_end, plan.L_end, lcom,
+                            vcom, mom.com_vel[2:3]])
+
+
+DIAG_NAMES = ("p_x", "p_y", "L_x", "L_y", "z", "u_x", "u_y", "p_end_x", "p_end_y", "L_end_x",
+              "L_end_y", "Lcom_x", "Lcom_y", "v_x", "v_y", "v_z")
+
+
 def desired(model, tau, start, q, v, domain):
     """References of one control step: standing (tau < 0) blends the CoM to
     [stance origin, H]; walking plans the foot placement from the measured ALIP state and
@@ -152,20 +230,10 @@ def desired(model, tau, start, q, v, domain):
     out["swing_rot"] = (jnp.array([0.0, 0.0, 1.0]) * heading, zero3, zero3)
 
     # Walking: ALIP plan about the stance sole.
-    stance = domain["stance"]
-    pl = robot.frame_pose(model, q, "left-sole")[0]
-    pr = robot.frame_pose(model, q, "right-sole")[0]
-    contact = jnp.where(stance > 0, pl, pr)
-    state = alip.alip_state_from_robot(model, q, v, contact, heading)
-    mass = jnp.sum(model.body_mass)
-    plan = alip.plan_foot_placement(state.p, state.L, domain["tau_step"], STEP_T, H_WALK, mass,
-                                    -model.gravity[2], domain["v_des"], domain["step_width"],
-                                    jnp.where(stance == 0, 1.0, stance))
-    side = jnp.where(stance == 0, 1.0, stance)  # +1: the swing foot goes to the right (-y)
-    u = jnp.stack([jnp.clip(plan.u[0], *STEP_X),
-                   -side * jnp.clip(-side * plan.u[1], *STEP_Y)])
+    _, _, u = plan_step(model, q, v, domain)
     p_sw0 = alip.world_to_heading((domain["swing0"] - domain["stance0"])[:2], heading)
-    sw = alip.swing_foot_reference(domain["tau_step"], STEP_T, p_sw0, u, z0=0.0)
+    sw = alip.swing_foot_reference(domain["tau_step"], STEP_T, p_sw0, u, z0=0.0,
+                                   vertical="land", horizontal=SWING_HORIZONTAL)
     base = domain["stance0"]
     rot = lambda xy: alip.rotate_yaw(xy, heading)  # noqa: E731
     pos = jnp.concatenate([base[:2] + rot(sw.pos[:2]), base[2:3] + sw.pos[2:3]])
@@ -228,18 +296,26 @@ class Gait:
                 "swing0": self.swing0.copy(), "heading": np.float64(self.heading),
                 "v_des": np.float64(self.v_des), "step_width": np.float64(self.step_width)}
 
-    def update(self, tau, dt, sole_pos, swing_contact):
+    def update(self, tau, dt, sole_pos, swing_force, weight):
         """Advance by one control step. sole_pos: {"left": (3,), "right": (3,)} measured;
-        swing_contact: whether the swinging sole touches the ground now. Returns True when
-        a new step began."""
+        swing_force: the swinging sole's normal force on the floor now (N); weight: the
+        robot's weight (N). Returns True when a new step began.
+
+        Touchdown: from T/2 to T a force of ``EARLY_TOUCHDOWN`` x weight (a foot that
+        really lands early, not a scuff); from T on, any force above ``TOUCH_FORCE`` N
+        (the swing reference is then below the floor, and a foot that rests on the floor
+        without pressing must not keep the step going)."""
         if tau < 0:
             return False
         if self.stance == BOTH:
             self._begin(LEFT, sole_pos)
             return True
         self.tau_step += dt
-        if (self.tau_step >= 0.5 * STEP_T and swing_contact) or self.tau_step >= 2 * STEP_T:
-            if not swing_contact:
+        early = self.tau_step >= 0.5 * STEP_T and swing_force > EARLY_TOUCHDOWN * weight
+        late = self.tau_step >= STEP_T and swing_force > TOUCH_FORCE
+        forced = self.tau_step >= 2 * STEP_T
+        if early or late or forced:
+            if not (early or late):
                 self.missed_touchdowns += 1
             self._begin(-self.stance, sole_pos)
             self.steps += 1

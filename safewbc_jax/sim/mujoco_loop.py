@@ -10,6 +10,7 @@ of standing precedes the motion (tau < 0); the paper's tau counts from its start
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from functools import partial
 
@@ -193,11 +194,17 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     gait = None
     if walking:
         from safewbc_jax.walking import Gait
+        from safewbc_jax.walking import rigid_spring_velocity as walking_rigid
 
         start["settle"], start["blend"] = jnp.asarray(settle), jnp.asarray(scenario.blend)
         pl, _ = robot.frame_pose(model, q0, "left-sole")
         start["half_width"] = pl[1] - start["origin"][1]
         gait = Gait(v_des=cfg.speed)
+        from safewbc_jax.walking import diagnostics as walking_diag
+
+        diag_fn = jax.jit(partial(walking_diag, model))
+        rigid_fn = (jax.jit(partial(walking_rigid, model)) if os.environ.get("SAFEWBC_RIGID", "1") == "1"
+                    else None)
     sole_geoms = {s: ms.geom(f"{s}-sole").id for s in ("left", "right")}
     floor_geom = ms.geom("floor").id
     leg_geoms = {s: {g for g in range(ms.ngeom) if ms.geom(g).name.startswith(s)
@@ -214,7 +221,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_qp",
                            "t_solve", "zmp_margin", "eq_residual", "slip", "loop_residual", "base_z",
                            "lambda", "qpos", "stance", "leg_contact", "clearance",
-                           "missed_touchdowns")}
+                           "missed_touchdowns", "alip")}
     for nm in names:
         log[f"y_{nm}"], log[f"yd_{nm}"] = [], []
     hnames = [b.name for b in scenario.barriers + scenario.monitors]
@@ -231,6 +238,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         tau = t - settle
         q, v = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
         domain = gait.domain() if walking else None
+        if walking and rigid_fn is not None:
+            v = rigid_fn(q, v, domain["stance"])
         u, x, info, aux, (tq, ts) = ctl.step(params, q, v, jnp.asarray(tau), start,
                                                  in_contact, barrier_on=cfg.barrier_on,
                                                  domain=domain)
@@ -261,11 +270,14 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         log["leg_contact"].append(contacts_now["legs"])
         log["clearance"].append(float(soles["left"][1] - soles["right"][1]))
         if walking:
+            log["alip"].append(np.asarray(diag_fn(q, v, domain)))
             swing = "right" if gait.stance > 0 else "left"
-            gait.update(tau, cfg.control_dt, soles, contacts_now[swing] > 0.2 * 9.81 * model.total_mass)
+            gait.update(tau, cfg.control_dt, soles, contacts_now[swing],
+                        -float(model.gravity[2]) * model.total_mass)
             log["stance"].append(gait.stance)
             log["missed_touchdowns"].append(gait.missed_touchdowns)
         else:
+            log["alip"].append(np.zeros(0))
             log["stance"].append(0.0)
             log["missed_touchdowns"].append(0)
         slip = np.linalg.norm(np.array([d.site_xpos[i][:2] for i in sole_ids]) - sole0, axis=1)
