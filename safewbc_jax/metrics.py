@@ -13,6 +13,17 @@ def _rms(x):
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
 
 
+def _tracking_rms(err):
+    """RMS over time of the error norm and of each component; a NaN component (no
+    reference: not an output in that domain, e.g. the CoM x, y while walking) is left out
+    of that time step (walking runs only: a diverged rollout's NaN must stay visible)."""
+    fin = np.isfinite(err)
+    rows = fin.any(axis=1)
+    norm = _rms(np.sqrt(np.sum(np.where(fin, err, 0.0) ** 2, axis=1))[rows])
+    comps = [_rms(err[fin[:, i], i]) for i in range(err.shape[1])]
+    return norm, comps
+
+
 def summarize(log: dict, run: dict, scenario_name: str, control_dt: float,
               solver: str = "piqp", threshold_of=None) -> dict:
     tau = log["tau"]
@@ -21,9 +32,13 @@ def summarize(log: dict, run: dict, scenario_name: str, control_dt: float,
     tracking, components = {}, {}
     for nm in run["outputs"]:
         err = log[f"y_{nm}"] - log[f"yd_{nm}"]
-        tracking[nm] = _rms(np.linalg.norm(err[track], axis=1))
-        for i in range(err.shape[1]):
-            components[f"{nm}[{i}]"] = _rms(err[track, i])
+        if run.get("walking"):
+            tracking[nm], comps = _tracking_rms(err[track])
+        else:
+            tracking[nm] = _rms(np.linalg.norm(err[track], axis=1))
+            comps = [_rms(err[track, i]) for i in range(err.shape[1])]
+        for i, c in enumerate(comps):
+            components[f"{nm}[{i}]"] = c
     lat = log["t_qp"] + log["t_solve"]
     lat = lat[LATENCY_SKIP:] if lat.size > LATENCY_SKIP else lat
     pct = lambda a, p: float(np.percentile(a, p)) if a.size else float("nan")  # noqa: E731

@@ -83,6 +83,8 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     plots.output_figures(log, info, labels, out_dir)
     plots.barrier_figure(log, info, out_dir, f"{name}: barrier values"
                          + ("" if barrier else " (--no-barrier)"))
+    if info.get("walking"):
+        plots.walking_figures(log, info, out_dir)
     if video:
         from safewbc_jax.sim.video import render_video
 

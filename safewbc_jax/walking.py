@@ -40,7 +40,7 @@ START_SHIFT = 0.04
 # Reach of the swing leg: the planned step vector is clipped to these bounds (m; lateral
 # distances are from the stance foot towards the swing side).
 STEP_X = (-0.30, 0.40)
-STEP_Y = (0.12, 0.45)
+STEP_Y = (-0.20, 0.45)
 LEFT, RIGHT, BOTH = 1.0, -1.0, 0.0
 SWING_HORIZONTAL = "minjerk"
 EARLY_TOUCHDOWN = 0.2   # x weight: swing-sole force that ends a step between T/2 and T
@@ -187,7 +187,7 @@ def plan_step(model, q, v, domain):
     side = jnp.where(stance == 0, 1.0, stance)  # +1: the swing foot goes to the right (-y)
     plan = alip.plan_foot_placement(state.p, state.L, domain["tau_step"], STEP_T, H_WALK, mass,
                                     -model.gravity[2], domain["v_des"], domain["step_width"],
-                                    side)
+                                    side, average_velocity=True)
     u = jnp.stack([jnp.clip(plan.u[0], *STEP_X),
                    -side * jnp.clip(-side * plan.u[1], *STEP_Y)])
     return state, plan, u

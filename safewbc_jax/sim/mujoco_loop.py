@@ -79,17 +79,18 @@ class CompiledController:
             qp0, _ = full_jit(params, q, v, tau, start, in_contact, domain)
             bounded = reduce.bounded_variables(qp0, model.nv, model.nu)
             self._bounded = bounded
+            packer = Packer()
             if self.reduce_on == "host":
-                packer = Packer()
                 packed = jax.jit(lambda *a: packer.pack(full(*a)))
-                self._fn[key] = lambda *a: packer.unpack(packed(*a))
             else:
                 def step(params, q, v, tau, start, in_contact, domain):
                     qpm, aux = full(params, q, v, tau, start, in_contact, domain)
                     red, rmap = reduce.eliminate_equalities(qpm, model.nv, model.nu, bounded)
-                    return qpm, red, rmap, aux
+                    return qpm, aux, red, rmap
 
-                self._fn[key] = jax.jit(step)
+                packed = jax.jit(lambda *a: packer.pack(step(*a)))
+            # one flat vector out, split into numpy views on the host (one transfer)
+            self._fn[key] = lambda *a: packer.unpack(packed(*a))
         return self._fn[key]
 
     def step(self, params, q, v, tau, start, in_contact, barrier_on=True, domain=None):
@@ -101,9 +102,7 @@ class CompiledController:
             if self.reduced:
                 red, rmap = reduce.eliminate_equalities_np(qpm, self.nv, self.nu, self._bounded)
         else:
-            qpm, red, rmap, aux = fn(params, q, v, tau, start, in_contact, domain)
-            qpm = jax.tree_util.tree_map(np.asarray, qpm)
-            red, rmap = jax.tree_util.tree_map(np.asarray, (red, rmap))
+            qpm, aux, red, rmap = fn(params, q, v, tau, start, in_contact, domain)
         if self.reduced:
             x0, nmat = rmap.x0, rmap.N
         t1 = time.perf_counter()
@@ -191,7 +190,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     start = start_state(model, q0)
     start["y0"] = controller.output_start_values(model, scenario, q0)
     walking = scenario.desired_fn is not None
-    gait = None
+    gait = rigid_fn = None
     if walking:
         from safewbc_jax.walking import Gait
         from safewbc_jax.walking import rigid_spring_velocity as walking_rigid
@@ -256,9 +255,14 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         log["lambda"].append(lam)
         log["zmp_margin"].append(float(zmp_fn(q, jnp.asarray(lam), in_contact))
                                  if x is not None else np.nan)
+        mask = ({k: np.asarray(m_) for k, m_ in scenario.weight_mask(domain).items()}
+                if walking and scenario.weight_mask is not None else {})
         for nm in names:
             ya, yd = aux["outputs"][nm]
-            log[f"y_{nm}"].append(np.asarray(ya)), log[f"yd_{nm}"].append(np.asarray(yd))
+            yd = np.asarray(yd, float)
+            if nm in mask:  # components not tracked in this domain have no reference
+                yd = np.where(mask[nm] > 0, yd, np.nan)
+            log[f"y_{nm}"].append(np.asarray(ya)), log[f"yd_{nm}"].append(yd)
         for hn in hnames:
             log[f"h_{hn}"].append(float(aux["barrier_h"][hn]))
         push_on = (cfg.push_force is not None and cfg.push_at <= tau < cfg.push_at + cfg.push_for)
@@ -280,8 +284,14 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
             log["alip"].append(np.zeros(0))
             log["stance"].append(0.0)
             log["missed_touchdowns"].append(0)
-        slip = np.linalg.norm(np.array([d.site_xpos[i][:2] for i in sole_ids]) - sole0, axis=1)
-        log["slip"].append(slip.max()), log["loop_residual"].append(sim_loop_residual(ms, d))
+        if walking and domain["stance"] != 0:
+            # walking: how far the stance sole has moved since its step began
+            st_id = sole_ids[0] if domain["stance"] > 0 else sole_ids[1]
+            slip = np.linalg.norm(d.site_xpos[st_id][:2] - domain["stance0"][:2])
+        else:
+            slip = np.linalg.norm(np.array([d.site_xpos[i][:2] for i in sole_ids]) - sole0,
+                                  axis=1).max()
+        log["slip"].append(slip), log["loop_residual"].append(sim_loop_residual(ms, d))
         log["base_z"].append(float(d.xpos[base_id][2]))
         log["qpos"].append(d.qpos.copy())
         if not np.all(np.isfinite(d.qpos)) or d.xpos[base_id][2] < FALL_HEIGHT:
