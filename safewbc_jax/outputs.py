@@ -86,6 +86,9 @@ class TorsoOrientation(Output):
     def value(self, model, q):
         return robot.torso_euler(model, q)
 
+    def evaluate(self, model, q, v, cache=None):
+        return robot.torso_euler_terms(model, q, v)
+
 
 @dataclasses.dataclass(frozen=True)
 class JointPositions(Output):

@@ -230,18 +230,6 @@ def load_robot(path=None, dtype=jnp.float64) -> RobotModel:
 # Kinematics
 # --------------------------------------------------------------------------------------
 
-def _levels(model: RobotModel):
-    """Bodies grouped by depth below the root, each with its parents (static)."""
-    depth = []
-    for b, p in enumerate(model.body_parent):
-        depth.append(0 if p < 0 else depth[p] + 1)
-    out = []
-    for lv in range(1, max(depth) + 1):
-        bodies = [b for b in range(len(depth)) if depth[b] == lv]
-        out.append((np.array(bodies), np.array([model.body_parent[b] for b in bodies])))
-    return out
-
-
 def _hinges(model: RobotModel):
     """Body indices of the hinge joints and their dof and qpos addresses (static)."""
     hb = [b for b, t in enumerate(model.body_jtype) if t == HINGE]
@@ -259,28 +247,62 @@ def _axis_angle_batch(axes, angles):
     return jnp.eye(3, dtype=axes.dtype) + s * k + (1.0 - c) * (k @ k)
 
 
-def forward_kinematics(model: RobotModel, q):
-    """World position and rotation of every body frame: (xpos [nb, 3], xrot [nb, 3, 3]).
+def _paths(model: RobotModel):
+    """Per body, the bodies below the root on its path from the root, root side first,
+    padded at the end with the index nb (an identity transform) to the tree's depth
+    (static [nb, depth])."""
+    nb = len(model.body_names)
+    paths = []
+    for b in range(nb):
+        path, c = [], b
+        while model.body_parent[c] >= 0:
+            path.append(c)
+            c = model.body_parent[c]
+        paths.append(path[::-1])
+    depth = max(1, max(len(p) for p in paths))
+    return np.array([p + [nb] * (depth - len(p)) for p in paths])
 
-    Vectorized over the bodies of each tree level (XLA on the CPU pays per operation, so
-    ten batched steps are much cheaper than one step per body)."""
+
+def _mat3(a, b):
+    """Batched 3 x 3 products written as sums of elementwise products (XLA fuses chains
+    of them into a few kernels, where a dot is one kernel each)."""
+    return a[..., :, 0:1] * b[..., 0:1, :] + a[..., :, 1:2] * b[..., 1:2, :] + a[..., :, 2:3] * b[..., 2:3, :]
+
+
+def _matvec3(a, x):
+    return a[..., :, 0] * x[..., 0:1] + a[..., :, 1] * x[..., 1:2] + a[..., :, 2] * x[..., 2:3]
+
+
+def _kinematics_of(model: RobotModel, q, bodies):
+    """World position and rotation of the given body frames (static indices)."""
     nb = len(model.body_names)
     if model.body_jtype[0] != FREE or model.body_parent[0] != -1:
         raise ValueError("the first body must carry the free joint")
     hb, _, hq = _hinges(model)
     angles = jnp.zeros(nb, q.dtype).at[hb].set(q[hq])
     local = model.body_rot @ _axis_angle_batch(model.jnt_axis, angles)  # fixed: axis 0 -> I
-    xrot = jnp.zeros((nb, 3, 3), q.dtype).at[0].set(spatial.quat_to_mat(q[3:7]))
-    xpos = jnp.zeros((nb, 3), q.dtype).at[0].set(q[0:3])
-    for bodies, parents in _levels(model):
-        prot = xrot[parents]
-        # Products written elementwise (multiply, then sum) rather than as dots: XLA fuses
-        # them with the gathers and scatters around them into a few kernels per level.
-        rot = jnp.sum(prot[:, :, :, None] * local[bodies][:, None, :, :], axis=2)
-        pos = xpos[parents] + jnp.sum(prot * model.body_pos[bodies][:, None, :], axis=-1)
-        xrot = xrot.at[bodies].set(rot)
-        xpos = xpos.at[bodies].set(pos)
+    local = jnp.concatenate([local, jnp.eye(3, dtype=q.dtype)[None]], axis=0)
+    offset = jnp.concatenate([model.body_pos, jnp.zeros((1, 3), q.dtype)], axis=0)
+    paths = _paths(model)[np.asarray(bodies)]
+    rot_path, pos_path = local[paths], offset[paths]  # [n, depth, 3, 3], [n, depth, 3]
+    n = paths.shape[0]
+    xrot = jnp.broadcast_to(spatial.quat_to_mat(q[3:7]), (n, 3, 3))
+    xpos = jnp.broadcast_to(q[0:3], (n, 3))
+    for k in range(paths.shape[1]):
+        xpos = xpos + _matvec3(xrot, pos_path[:, k])
+        xrot = _mat3(xrot, rot_path[:, k])
     return xpos, xrot
+
+
+def forward_kinematics(model: RobotModel, q):
+    """World position and rotation of every body frame: (xpos [nb, 3], xrot [nb, 3, 3]).
+
+    Every body composes the transforms along its own path from the root, all bodies at
+    once and depth by depth (the paths are padded with identities), written as
+    elementwise products: XLA on the CPU pays per operation, and this fuses into a handful
+    of kernels where a level-by-level pass with gathers and scatters takes sixty. The
+    products are the same, in the same order, as composing parent then child."""
+    return _kinematics_of(model, q, np.arange(len(model.body_names)))
 
 
 def _dof_motion(model: RobotModel, xpos, xrot):
@@ -483,9 +505,9 @@ def actuation_matrix(model: RobotModel):
 def frame_pose(model: RobotModel, q, frame: str):
     """World position and rotation matrix of a named site (e.g. ``left-sole``)."""
     s = model.site_id(frame)
-    xpos, xrot = forward_kinematics(model, q)
     b = model.site_body[s]
-    return xpos[b] + xrot[b] @ model.site_pos[s], xrot[b] @ model.site_rot[s]
+    xpos, xrot = _kinematics_of(model, q, np.array([b]))  # only the body's own path
+    return xpos[0] + xrot[0] @ model.site_pos[s], xrot[0] @ model.site_rot[s]
 
 
 def frame_jacobian(model: RobotModel, q, frame: str):
@@ -535,6 +557,39 @@ def torso_euler_jacobian(model: RobotModel, q):
 def torso_euler_drift(model: RobotModel, q, v):
     """J_dot v of the torso Euler angles: their second derivative along v."""
     return spatial.second_derivative_along(lambda qq: torso_euler(model, qq), q, v)
+
+
+def torso_euler_terms(model: RobotModel, q, v):
+    """(theta, J_theta, J_theta_dot v) of the torso Euler ZYX angles in closed form.
+
+    With the base's body-frame angular velocity omega = v[3:6] (MuJoCo's free joint) and
+    R = Rz(yaw) Ry(pitch) Rx(roll), omega = [r_dot - s_p y_dot, c_r p_dot + s_r c_p y_dot,
+    -s_r p_dot + c_r c_p y_dot]; inverted, theta_dot = E(r, p) omega with
+
+        E = [[1, s_r t_p, c_r t_p], [0, c_r, -s_r], [0, s_r / c_p, c_r / c_p]],
+
+    so J_theta is E in the base's rotational columns. Its drift (omega held fixed) is
+    dE/dr omega r_dot + dE/dp omega p_dot with a = s_r w_y + c_r w_z, b = c_r w_y - s_r w_z:
+    dE/dr omega = [t_p b, -a, b / c_p], dE/dp omega = [a / c_p^2, 0, a s_p / c_p^2],
+    r_dot = w_x + t_p a, p_dot = b. Equal to ``torso_euler_jacobian`` and
+    ``torso_euler_drift`` (forward-mode AD) away from pitch = +-pi/2, where both are
+    singular."""
+    theta = torso_euler(model, q)
+    k0 = model.body_dadr[0]
+    sr, cr = jnp.sin(theta[0]), jnp.cos(theta[0])
+    sp, cp = jnp.sin(theta[1]), jnp.cos(theta[1])
+    tp, icp = sp / cp, 1.0 / cp
+    zero, one = jnp.zeros_like(sr), jnp.ones_like(sr)
+    e = jnp.stack([jnp.stack([one, sr * tp, cr * tp]), jnp.stack([zero, cr, -sr]),
+                   jnp.stack([zero, sr * icp, cr * icp])])
+    jac = jnp.zeros((3, model.nv), q.dtype).at[:, k0 + 3:k0 + 6].set(e)
+    w = v[k0 + 3:k0 + 6]
+    a = sr * w[1] + cr * w[2]
+    b = cr * w[1] - sr * w[2]
+    r_dot = w[0] + tp * a
+    drift = (r_dot * jnp.stack([tp * b, -a, b * icp])
+             + b * jnp.stack([a * icp * icp, zero, a * sp * icp * icp]))
+    return theta, jac, drift
 
 
 def frame_position_in(model: RobotModel, q, frame: str, reference: str):

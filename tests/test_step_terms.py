@@ -49,3 +49,14 @@ def test_terms_vmap_over_states(rm, states):
         one = controller.robot_terms(rm, sc, qs[i], vs[i])
         np.testing.assert_allclose(batched.Jdot_v[i], one.Jdot_v, atol=1e-12)
         np.testing.assert_allclose(batched.h[i], one.h, atol=1e-10)
+
+
+def test_torso_euler_terms_equal_the_ad_terms(rm, states):
+    closed = jax.jit(lambda q, v: robot.torso_euler_terms(rm, q, v))
+    for q, v in states:
+        q, v = jnp.asarray(q), jnp.asarray(v)
+        y, j, jd = closed(q, v)
+        np.testing.assert_allclose(y, robot.torso_euler(rm, q), atol=1e-14)
+        np.testing.assert_allclose(j, robot.torso_euler_jacobian(rm, q), atol=1e-11)
+        np.testing.assert_allclose(jd, robot.torso_euler_drift(rm, q, v),
+                                   atol=1e-10 * max(1.0, float(jnp.abs(jd).max())))
