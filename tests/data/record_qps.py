@@ -3,7 +3,7 @@ tests/data/controller_qps.npz (the fixture the JAX solver is checked against PIQ
 
     python tests/data/record_qps.py
 
-Every ``EVERY``-th control step of each run is kept; arms runs with and without the
+Every ``every``-th control step of each run is kept; arms runs with and without the
 barrier give QPs with the A-ECBF row active and inactive. Arrays are stacked per field
 (qp_P, qp_q, ...), with qp_status/qp_fallback from PIQP at record time and qp_scenario.
 """
@@ -12,11 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
+import qp_fixture
+
 from safewbc_jax.runner import run_scenario
 
 OUT = Path(__file__).with_name("controller_qps.npz")
-RUNS = [("squat", dict(duration=3.0), 10), ("bow", dict(duration=6.0), 20),
-        ("arms", dict(duration=8.0), 25), ("arms", dict(duration=8.0, barrier=False), 40)]
+RUNS = [("squat", dict(duration=3.0), 30), ("bow", dict(duration=6.0), 50),
+        ("arms", dict(duration=8.0), 30), ("arms", dict(duration=8.0, barrier=False), 40),
+        ("walk", dict(duration=3.0), 16)]
 
 
 def main():
@@ -41,7 +44,7 @@ def main():
             p["qp_h"] = np.concatenate([p["qp_h"], np.ones((n, k))], axis=1)
             p["qp_soft"] = np.concatenate([p["qp_soft"], np.zeros((n, k))], axis=1)
     out = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    np.savez_compressed(OUT, **out)
+    qp_fixture.save(OUT, out)
     print(f"wrote {OUT}: {len(out['qp_step'])} QPs, {OUT.stat().st_size / 1e6:.1f} MB")
 
 
