@@ -108,13 +108,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     from safewbc_jax.scenarios import SCENARIOS
 
-    p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller "
-                       "(walk and push are work in progress: the robot falls after a few steps)")
+    p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller")
     p.add_argument("scenario", choices=sorted(SCENARIOS) + ["push", "walk"])
-    p.add_argument("--speed", type=float, default=0.2, help="walk/push: forward speed (m/s)")
+    p.add_argument("--speed", type=float, default=0.2, help="walk/push: commanded mean "
+                   "forward speed (m/s)")
     p.add_argument("--force", default=None, help="push: FX,FY,FZ on the torso (N); "
                    "default 0,-30,0 (the paper's)")
-    p.add_argument("--at", type=float, default=None, help="push: start, s after walking starts")
+    p.add_argument("--at", type=float, default=None, help="push: start, s after walking starts "
+                   "(default 2.55: early in a right-stance step, where a push to the right "
+                   "drives the left swing foot towards the stance foot)")
     p.add_argument("--for", dest="push_for", type=float, default=0.15, help="push: duration (s)")
     p.add_argument("--duration", type=float, default=None, help="seconds of motion")
     p.add_argument("--settle", type=float, default=None, help="seconds standing before the motion")

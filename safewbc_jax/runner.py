@@ -35,6 +35,12 @@ def check_video_backend(path: str) -> None:
             "'apt-get install libosmesa6' with MUJOCO_GL=osmesa.") from None
 
 
+# Default push start (s after walking starts): 0.05 s into the fourth step, a right-stance
+# step of the default walk, where a push to the right (-y) carries the CoM over the stance
+# foot and the planner pulls the left swing foot in towards it (the paper's collision case).
+PUSH_AT = 2.55
+
+
 def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_file=None,
                  video=None, settle=None, control_dt=1e-3, quiet=False,
                  record_qps_every=0, speed=0.2, push=None, push_at=None, push_for=0.15) -> dict:
@@ -47,7 +53,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     if push is not None and (len(push) != 3 or not all(np.isfinite(push))):
         raise ValueError(f"--force must be three finite numbers FX,FY,FZ, got {push!r}")
     if push_at is None:
-        push_at = 3.0
+        push_at = PUSH_AT
     if push_for <= 0:
         raise ValueError(f"--for must be positive, got {push_for}")
     params = scenario.default_params()

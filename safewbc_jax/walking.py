@@ -16,6 +16,27 @@ path needs.
 The stance ankle is passive, as the ALIP requires (L_dot = m g p only holds with no ankle
 torque): in the QP the stance leg's two ankle motors (toe-A, toe-B, which drive the ankle
 pitch and roll through the rods) get the bounds 0 <= u <= 0 (``passive_actuators``).
+
+What differs from the paper's printed task, and why (measured in MuJoCo on this model):
+
+* Swing-foot profile. Horizontally the paper blends with s = 1 - exp(-5 tau / T), whose
+  slope at lift-off is 5/T: a 0.3 m step starts the foot at ~4 m/s, and the lift-off
+  feed-forward saturated the hips at every switch. The default here is the minimum-jerk
+  blend (``alip.swing_foot_reference(horizontal="minjerk")``: at rest at lift-off, on the
+  planned point at T); ``SWING_HORIZONTAL = "paper"`` restores the exponential.
+  Vertically the printed 0.08 sin(2 pi tau / T) is below the floor for the second half
+  of the step; ``vertical="land"`` rises to ~0.08 m and comes down at 0.2 m/s at T, then
+  keeps descending until the contact check ends the step.
+* Swing-leg springs. The controller holds the shin and heel springs rigid (the paper's
+  n_kc); the simulator's are undamped. The loop feeds the controller the swing leg's
+  rates with rigid springs (``rigid_spring_velocity``): with the measured spring rates the
+  swing leg rang at ~30 Hz with bang-bang hip and knee torques.
+* Touchdown. From T/2 a firm contact (``EARLY_TOUCHDOWN`` x weight) ends the step early;
+  from T any contact does; at 2 T the switch is forced and counted.
+* Planner target. The planner aims at the commanded *mean* velocity
+  (``average_velocity=True``), and its lateral step may cross towards the stance foot
+  (``STEP_Y`` down to -0.2 m): keeping the feet apart is the swing-foot barrier's job, as
+  in the paper's collision-avoidance task.
 """
 
 from __future__ import annotations
@@ -38,7 +59,8 @@ SWING_POLES = (20.0, 20.0)
 # pendulum starts near its orbit instead of falling from the middle of the feet.
 START_SHIFT = 0.04
 # Reach of the swing leg: the planned step vector is clipped to these bounds (m; lateral
-# distances are from the stance foot towards the swing side).
+# distances are from the stance foot towards the swing side; below 0.07 the step enters
+# the swing-foot barrier's unsafe set, below 0 it crosses the stance foot).
 STEP_X = (-0.30, 0.40)
 STEP_Y = (-0.20, 0.45)
 LEFT, RIGHT, BOTH = 1.0, -1.0, 0.0
@@ -211,7 +233,7 @@ DIAG_NAMES = ("p_x", "p_y", "L_x", "L_y", "z", "u_x", "u_y", "p_end_x", "p_end_y
 def desired(model, tau, start, q, v, domain):
     """References of one control step: standing (tau < 0) blends the CoM to
     [stance origin, H]; walking plans the foot placement from the measured ALIP state and
-    follows the paper's swing reference."""
+    sends the swing foot there (``alip.swing_foot_reference``, see the module docstring)."""
     heading = domain["heading"]
     out = {}
 

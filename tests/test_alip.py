@@ -268,3 +268,40 @@ def test_swing_reference_profile_and_derivatives():
                                                                   exact_landing=exact).pos,
                               (jnp.float64(tau),), (jnp.float64(1.0),))
             assert np.allclose(dpos, r.vel, rtol=1e-12, atol=1e-14)
+
+
+def test_swing_reference_walking_profiles():
+    """The minimum-jerk horizontal blend and the soft-landing vertical profile used by the
+    walking domain: boundary values, the landing and the descent after T, and the
+    derivatives against central differences."""
+    p0, u = np.array([-0.2, -0.25]), np.array([0.15, -0.27])
+    kw = dict(horizontal="minjerk", vertical="land")
+    ref = jax.jit(lambda t: alip.swing_foot_reference(t, T, p0, u, **kw))
+    r0 = ref(0.0)
+    assert np.allclose(r0.pos, [p0[0], p0[1], 0.0], atol=1e-15)
+    assert np.allclose(r0.vel, 0.0, atol=1e-15)            # no lift-off jump
+    rT = ref(T)
+    assert np.allclose(rT.pos[:2], u, rtol=1e-14)           # lands on u at T
+    assert np.allclose(rT.vel[:2], 0.0, atol=1e-14)
+    assert abs(float(rT.pos[2])) < 1e-15
+    assert np.isclose(float(rT.vel[2]), -alip.LAND_SPEED, rtol=1e-12)  # soft landing
+    zs = np.asarray(jax.vmap(lambda t: ref(t).pos)(np.linspace(0, T, 401)))[:, 2]
+    # apex: at least the height, at most height + max of d s^2 (1 - s) = 4 d / 27
+    assert zs.min() >= -1e-15 and 0.08 <= zs.max() <= 0.08 + 4 * alip.LAND_SPEED * T / 27
+    # after T: keeps descending at the landing speed, stops LAND_DEPTH below the floor
+    late = ref(T + 0.05)
+    assert np.isclose(float(late.pos[2]), -alip.LAND_SPEED * 0.05, rtol=1e-12)
+    assert np.isclose(float(late.vel[2]), -alip.LAND_SPEED, rtol=1e-12)
+    rest = ref(T + 10 * alip.LAND_DEPTH / alip.LAND_SPEED)
+    assert np.isclose(float(rest.pos[2]), -alip.LAND_DEPTH) and float(rest.vel[2]) == 0.0
+    assert np.allclose(rest.pos[:2], u, rtol=1e-14)
+    h = 1e-6
+    for tau in (0.01, 0.1, 0.175, 0.3, 0.34, T + 0.05):
+        r, rp, rm_ = ref(tau), ref(tau + h), ref(tau - h)
+        assert np.allclose(r.vel, (rp.pos - rm_.pos) / (2 * h), rtol=1e-6, atol=1e-8)
+        assert np.allclose(r.acc, (rp.vel - rm_.vel) / (2 * h), rtol=1e-6, atol=1e-6)
+    # the paper's exponential starts the foot at (rate / T) |u - p0|; minjerk at rest
+    paper = alip.swing_foot_reference(0.0, T, p0, u)
+    assert np.allclose(paper.vel[:2], alip.SWING_RATE / T * (u - p0), rtol=1e-14)
+    with pytest.raises(ValueError):
+        alip.swing_foot_reference(0.1, T, p0, u, horizontal="cubic")

@@ -10,7 +10,6 @@ of standing precedes the motion (tau < 0); the paper's tau counts from its start
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from functools import partial
 
@@ -40,6 +39,7 @@ class RunConfig:
     push_force: tuple | None = None    # (FX, FY, FZ) N on the torso, world frame
     push_at: float = 2.0               # s after the motion starts
     push_for: float = 0.15             # s
+    rigid_swing_leg: bool = True       # walking: swing-leg rates with rigid springs (walking.py)
 
 
 class CompiledController:
@@ -202,8 +202,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         from safewbc_jax.walking import diagnostics as walking_diag
 
         diag_fn = jax.jit(partial(walking_diag, model))
-        rigid_fn = (jax.jit(partial(walking_rigid, model)) if os.environ.get("SAFEWBC_RIGID", "1") == "1"
-                    else None)
+        rigid_fn = jax.jit(partial(walking_rigid, model)) if cfg.rigid_swing_leg else None
     sole_geoms = {s: ms.geom(f"{s}-sole").id for s in ("left", "right")}
     floor_geom = ms.geom("floor").id
     leg_geoms = {s: {g for g in range(ms.ngeom) if ms.geom(g).name.startswith(s)
@@ -237,11 +236,15 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         tau = t - settle
         q, v = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
         domain = gait.domain() if walking else None
+        t_rigid = 0.0
         if walking and rigid_fn is not None:
-            v = rigid_fn(q, v, domain["stance"])
+            t0r = time.perf_counter()
+            v = rigid_fn(q, v, domain["stance"]).block_until_ready()
+            t_rigid = (time.perf_counter() - t0r) * 1e6
         u, x, info, aux, (tq, ts) = ctl.step(params, q, v, jnp.asarray(tau), start,
                                                  in_contact, barrier_on=cfg.barrier_on,
                                                  domain=domain)
+        tq += t_rigid  # the swing leg's rigid-spring velocity is part of the control step
         if cfg.record_qps_every and k % cfg.record_qps_every == 0:
             recorded.append((k, ctl.last_qp, int(info["status"]), info["fallback"]))
         if k == 0:
