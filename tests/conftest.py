@@ -1,8 +1,19 @@
+import os
+import tempfile
+
 import jax
 import numpy as np
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+
+# JAX's persistent compilation cache for the whole session and its subprocesses (the
+# closed-loop rollout functions take minutes to compile on a 2-core CPU; tests that run
+# the same one share it). Keyed by the compiled program, so a stale entry never matches.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
+                      os.path.join(tempfile.gettempdir(), "safewbc-jax-test-xla-cache"))
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 5.0)
 
 
 @pytest.fixture(scope="session")

@@ -404,7 +404,9 @@ def _finish(pl: Plant, acc: Acc) -> dict:
     out = {"fell": ~acc.alive, "fell_time_s": np.where(acc.alive, np.nan,
                                                       acc.fell_step * cfg.control_dt),
            "qp_solved": acc.n_none, "qp_failed": acc.n_failed, "fallbacks": acc.n_relaxed,
-           "zmp_margin_min": np.where(np.isfinite(acc.zmp_min), acc.zmp_min, np.nan),
+           # +inf: never evaluated (no motion phase reached) -> NaN; -inf (no normal force
+           # under the feet, as in the MuJoCo loop's metric) is kept
+           "zmp_margin_min": np.where(acc.zmp_min == np.inf, np.nan, acc.zmp_min),
            "foot_slip_max": acc.slip_max, "torque_ratio_max": acc.torque_max,
            "loop_residual_max": acc.loop_max}
     n = np.maximum(acc.track_n, 1)
@@ -412,7 +414,7 @@ def _finish(pl: Plant, acc: Acc) -> dict:
         out[f"tracking_rms.{o.name}"] = np.where(acc.track_n > 0,
                                                  np.sqrt(acc.track_sq[o.name] / n), np.nan)
     for name, h in acc.h_min.items():
-        out[f"barrier_min.{name}"] = np.where(np.isfinite(h), h, np.nan)
+        out[f"barrier_min.{name}"] = np.where(h == np.inf, np.nan, h)
     return {k: np.asarray(v) for k, v in out.items()}
 
 

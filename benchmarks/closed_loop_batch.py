@@ -1,0 +1,110 @@
+"""Closed-loop robot-steps per second of the batched path against batch size, side by side
+with bare MJX physics at the same batch and with the single-robot deployment loop
+(MuJoCo C + PIQP) on the same machine.
+
+For each batch size B:
+  closed_loop   ``batch.rollout.run_batch``: controller (robot terms, QP assembly, the JAX
+                QP solver) + MJX physics, B rollouts of the arms scenario (barrier on), one
+                compiled call; timed on a second call (the step count is a run-time value,
+                so the first call's compile is reused). robot-steps/s = B * steps / time.
+  physics       ``jit(scan(vmap(mjx.step)))`` of the same model and batch, --physics-steps
+                steps, timed on a second call.
+and once:
+  single_loop   ``sim.mujoco_loop.run`` of the same scenario: per control step, jitted terms
+                + assembly, host elimination, PIQP, mj_step (compile excluded).
+
+Each figure is the median of --reps timed calls. The ratio closed_loop / single_loop is
+the batched path's speed per robot-step relative to one robot in real time.
+
+    python benchmarks/closed_loop_batch.py --batches 1 16 128 1024 [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 16, 128, 1024])
+    ap.add_argument("--duration", type=float, default=0.05,
+                    help="seconds of motion after the 1 s settle (default 0.05)")
+    ap.add_argument("--physics-steps", type=int, default=100)
+    ap.add_argument("--reps", type=int, default=1)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    if min(args.batches) < 1 or args.reps < 1 or args.duration <= 0:
+        ap.error("--batches and --reps must be positive, --duration > 0")
+
+    import jax
+    import numpy as np
+
+    from safewbc_jax import scenarios
+    from safewbc_jax.batch.rollout import BatchConfig, default_params, plant, run_batch
+    from safewbc_jax.mjx_import import import_mjx
+    from safewbc_jax.sim.mujoco_loop import RunConfig, run
+
+    mjx = import_mjx()
+    settle = 1.0
+    cfg = BatchConfig("arms", duration=args.duration, settle=settle)
+    pl = plant(cfg)
+    n_steps, _ = pl.schedule(cfg)
+    say = (lambda *a: None) if args.json else (lambda *a: print(*a, flush=True))  # noqa: E731
+
+    def median_time(fn, reps):
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            ts.append(time.perf_counter() - t0)
+        return float(np.median(ts))
+
+    # the single-robot deployment loop
+    sc = scenarios.get_scenario("arms")
+    t0 = time.perf_counter()
+    log, info = run(sc, sc.default_params(), RunConfig(duration=args.duration, settle=settle))
+    wall = time.perf_counter() - t0 - float(log["compile_s"])
+    single = len(log["t"]) / wall
+    say(f"single-robot MuJoCo + PIQP loop: {single:.0f} robot-steps/s "
+        f"(p50 controller step {np.median(log['t_qp'] + log['t_solve']):.0f} us)")
+
+    rows = []
+    for b in args.batches:
+        params = default_params("arms", b)
+        t0 = time.perf_counter()
+        met, _ = run_batch(cfg, params)
+        first = time.perf_counter() - t0
+        t_run = median_time(lambda: run_batch(cfg, params)[0]["qp_solved"], args.reps)
+        cl = b * n_steps / t_run
+
+        step = jax.vmap(mjx.step, in_axes=(None, 0))
+        d0 = jax.tree_util.tree_map(lambda a: np.broadcast_to(a, (b,) + a.shape), pl.data0)
+        phys = jax.jit(lambda d: jax.lax.scan(lambda c, _: (step(pl.mjx_model, c), None), d,
+                                              None, length=args.physics_steps)[0].qpos)
+        t0 = time.perf_counter()
+        jax.block_until_ready(phys(d0))
+        phys_compile = time.perf_counter() - t0
+        t_phys = median_time(lambda: phys(d0), args.reps)
+        ph = b * args.physics_steps / t_phys
+        row = {"batch": b, "steps": n_steps, "first_call_s": round(first, 1),
+               "run_s": round(t_run, 2), "closed_loop_robot_steps_per_s": round(cl, 1),
+               "physics_steps_per_s": round(ph, 1), "physics_compile_s": round(phys_compile, 1),
+               "closed_loop_over_physics": round(cl / ph, 3),
+               "closed_loop_over_single_loop": round(cl / single, 3),
+               "fell": int(np.sum(met["fell"])), "qp_failed": int(np.sum(met["qp_failed"]))}
+        rows.append(row)
+        say(f"batch {b:5d}: closed loop {cl:9.1f} robot-steps/s, physics {ph:9.1f} steps/s, "
+            f"closed/physics {cl / ph:.3f}, closed/single-loop {cl / single:.2f} "
+            f"(first call {first:.0f} s, run {t_run:.1f} s, falls {row['fell']}, "
+            f"failed QPs {row['qp_failed']})")
+    res = {"scenario": "arms", "single_loop_robot_steps_per_s": round(single, 1),
+           "backend": jax.default_backend(), "rows": rows}
+    if args.json:
+        print(json.dumps(res))
+    return res
+
+
+if __name__ == "__main__":
+    main()

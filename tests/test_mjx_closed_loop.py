@@ -1,0 +1,112 @@
+"""The batched path (safewbc_jax.batch.rollout) against the deployment path (MuJoCo C +
+PIQP, safewbc_jax.sim.mujoco_loop): the same scenario and parameters through both.
+
+* squat, 2 s of motion after a 1 s settle: CoM trajectories within 5 mm;
+* arms, 8 s of motion (the fists rise above the threshold around tau = 7.5 s, where
+  sin(pi tau / 5) = -1): barrier minima within 1 mm; in the same batch a rollout pushed hard enough to
+  fall is flagged and frozen while its neighbour runs on unaffected;
+* bad input is refused before anything compiles.
+
+Compiles two closed-loop functions (~2 minutes each on a 2-core CPU; the arms one, batch 2
+without trajectories, is the one the sweep tests compile too, and JAX's persistent
+compilation cache, enabled in conftest, shares it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from safewbc_jax import barriers, scenarios
+from safewbc_jax.batch.rollout import BatchConfig, BatchError, Push, default_params, run_batch
+from safewbc_jax.sim.mujoco_loop import RunConfig, run
+
+SETTLE = 1.0
+ARMS_S = 8.0
+
+
+def _c_loop(name, duration):
+    sc = scenarios.get_scenario(name)
+    return run(sc, sc.default_params(), RunConfig(duration=duration, settle=SETTLE))
+
+
+@pytest.fixture(scope="module")
+def squat():
+    cfg = BatchConfig("squat", duration=2.0, settle=SETTLE, decimate=10)
+    met, rec = run_batch(cfg, default_params("squat", 1))
+    log, info = _c_loop("squat", 2.0)
+    return met, rec, log, info
+
+
+def test_squat_com_matches_deployment_path(squat):
+    met, rec, log, info = squat
+    assert not info["fell"] and not met["fell"][0]
+    n = log["y_com"].shape[0]
+    assert n == 3000 and rec["y_com"].shape == (1, 300, 3)
+    com_c = log["y_com"][::10]
+    err = np.linalg.norm(rec["y_com"][0] - com_c, axis=1)
+    assert err.max() <= 5e-3, f"CoM differs by up to {err.max() * 1e3:.2f} mm"
+    # the references are the same functions of tau
+    np.testing.assert_allclose(rec["yd_com"][0], log["yd_com"][::10], atol=1e-12)
+    np.testing.assert_allclose(rec["tau"][0], log["tau"][::10], atol=1e-12)
+    assert met["qp_failed"][0] == 0 and met["fallbacks"][0] == 0
+
+
+@pytest.fixture(scope="module")
+def arms():
+    b = 2
+    params = default_params("arms", b)
+    push = Push(force=np.array([[0.0, 0.0, 0.0], [0.0, 800.0, 0.0]]),
+                at=np.array([0.0, 0.3]), duration=np.array([0.0, 0.3]))
+    cfg = BatchConfig("arms", duration=ARMS_S, settle=SETTLE)
+    met, _ = run_batch(cfg, params, push, np.zeros((b, 54)))
+    log, info = _c_loop("arms", ARMS_S)
+    return met, log, info
+
+
+def test_arms_barrier_minima_match_deployment_path(arms):
+    met, log, info = arms
+    assert not info["fell"] and not met["fell"][0]
+    for name in ("left_fist", "right_fist"):
+        h_c = float(np.min(log[f"h_{name}"]))
+        h_b = float(met[f"barrier_min.{name}"][0])
+        assert abs(h_b - h_c) <= 1e-3, (name, h_b, h_c)
+    # the guarded left fist stays safe, the right one crosses (the paper's figure)
+    assert met["barrier_min.left_fist"][0] >= -1e-3
+    assert met["barrier_min.right_fist"][0] < 0.0
+    assert met["qp_failed"][0] == 0
+
+
+def test_fallen_rollout_is_flagged_and_isolated(arms):
+    met, _, _ = arms
+    assert met["fell"].tolist() == [False, True]
+    t_fall = met["fell_time_s"][1]
+    assert SETTLE + 0.3 < t_fall < SETTLE + ARMS_S
+    for key, v in met.items():   # nothing NaN where the metric is defined
+        if key != "fell_time_s":
+            assert not np.any(np.isnan(v.astype(float))), key
+    # while falling the feet lose the floor: no ZMP (-inf, as the MuJoCo loop reports it)
+    assert met["zmp_margin_min"][0] > 0.0 and met["zmp_margin_min"][1] < 0.0
+
+
+def test_bad_input_refused_before_compiling():
+    cfg = BatchConfig("arms", duration=0.05, settle=SETTLE)
+    p = default_params("arms", 2)
+    with pytest.raises(BatchError, match="walking runs in the MuJoCo loop only"):
+        run_batch(BatchConfig("walk"), p)
+    with pytest.raises(BatchError, match=r"push.force has shape \(3, 3\)"):
+        run_batch(cfg, p, Push(np.zeros((3, 3)), np.zeros(2), np.zeros(2)))
+    with pytest.raises(BatchError, match="perturb_v has shape"):
+        run_batch(cfg, p, None, np.zeros((2, 7)))
+    bad = jax.tree_util.tree_map(lambda a: a, p)
+    bad = dataclasses.replace(bad, kp={**bad.kp, "com": bad.kp["com"][:1]})
+    with pytest.raises(BatchError, match=r"params.*com.* has batch size 1"):
+        run_batch(cfg, bad)
+    with pytest.raises(BatchError, match="must cover the reference blend"):
+        run_batch(dataclasses.replace(cfg, settle=0.2), p)
+    poles = p.poles["left_fist"].at[1, 0].set(-1.0)
+    with pytest.raises(barriers.PoleError, match="rollout 1: barrier 'left_fist': pole p_1"):
+        run_batch(cfg, dataclasses.replace(p, poles={**p.poles, "left_fist": poles}))
