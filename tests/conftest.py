@@ -70,3 +70,14 @@ def trajectory_point(m, q0, v0, a, t, substeps=400):
     for i in range(substeps):
         q = mj_integrate(m, q, v0 + a * (i + 0.5) * h, h)
     return q, v0 + a * t
+
+
+@pytest.fixture(scope="session")
+def arms_deployment(tmp_path_factory):
+    """One MuJoCo + PIQP run of the arms scenario with its barrier (8 s of motion after a
+    1 s settle: the fists pass their highest point at tau = 7.5 s), shared by the
+    closed-loop test and the MJX consistency test: (metrics, output directory)."""
+    from safewbc_jax.runner import run_scenario
+
+    out = tmp_path_factory.mktemp("arms_deployment")
+    return run_scenario("arms", duration=8.0, settle=1.0, out=out, quiet=True), out

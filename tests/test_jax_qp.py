@@ -260,7 +260,6 @@ def test_float32_path(data, piqp_ref):
     double-support QPs only: on the single-support walking QPs (passive stance ankle,
     one foot's wrench) float32 torques were off by up to 35% of their limits (measured on
     this fixture), so walking rollouts need float64."""
-    nrec = data["nrec"]
     scen = data["scenario"]
     ds = np.flatnonzero(scen != "walk")
     idx = ds[np.linspace(0, ds.size - 1, 64).astype(int)]

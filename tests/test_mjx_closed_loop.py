@@ -56,22 +56,22 @@ def test_squat_com_matches_deployment_path(squat):
 
 
 @pytest.fixture(scope="module")
-def arms():
+def arms(arms_deployment):
     b = 2
     params = default_params("arms", b)
     push = Push(force=np.array([[0.0, 0.0, 0.0], [0.0, 800.0, 0.0]]),
                 at=np.array([0.0, 0.3]), duration=np.array([0.0, 0.3]))
     cfg = BatchConfig("arms", duration=ARMS_S, settle=SETTLE)
     met, _ = run_batch(cfg, params, push, np.zeros((b, 54)))
-    log, info = _c_loop("arms", ARMS_S)
-    return met, log, info
+    return met, arms_deployment[0]    # the MuJoCo + PIQP run: conftest, 8 s after 1 s
 
 
 def test_arms_barrier_minima_match_deployment_path(arms):
-    met, log, info = arms
-    assert not info["fell"] and not met["fell"][0]
+    met, m_c = arms
+    assert m_c["duration_s"] == pytest.approx(ARMS_S) and m_c["settle_s"] == SETTLE
+    assert not m_c["fell"] and not met["fell"][0]
     for name in ("left_fist", "right_fist"):
-        h_c = float(np.min(log[f"h_{name}"]))
+        h_c = m_c["barrier_min"][name]
         h_b = float(met[f"barrier_min.{name}"][0])
         assert abs(h_b - h_c) <= 1e-3, (name, h_b, h_c)
     # the guarded left fist stays safe, the right one crosses (the paper's figure)
@@ -81,7 +81,7 @@ def test_arms_barrier_minima_match_deployment_path(arms):
 
 
 def test_fallen_rollout_is_flagged_and_isolated(arms):
-    met, _, _ = arms
+    met, _ = arms
     assert met["fell"].tolist() == [False, True]
     t_fall = met["fell_time_s"][1]
     assert SETTLE + 0.3 < t_fall < SETTLE + ARMS_S

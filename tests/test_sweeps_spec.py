@@ -2,7 +2,6 @@
 Parquet table and the report figures: everything of the sweep layer that needs no
 rollout. The rollouts themselves are in test_sweeps_rollouts.py."""
 
-import json
 import os
 import subprocess
 import sys
