@@ -29,15 +29,18 @@ def model_info() -> dict:
     }
 
 
-def sim_loop_residual(ms, d) -> float:
-    """Largest distance (m) between a rod's tip and the anchor it should meet."""
-    res = 0.0
-    for s in range(ms.nsite):
-        name = ms.site(s).name
-        if name.endswith("-tip"):
-            a = ms.site(name[:-4] + "-anchor").id
-            res = max(res, float(np.linalg.norm(d.site_xpos[s] - d.site_xpos[a])))
-    return res
+def loop_site_pairs(ms) -> tuple[np.ndarray, np.ndarray]:
+    """(tip sites, anchor sites): each rod's tip and the anchor it should meet."""
+    tips = [s for s in range(ms.nsite) if ms.site(s).name.endswith("-tip")]
+    anchors = [ms.site(ms.site(s).name[:-4] + "-anchor").id for s in tips]
+    return np.array(tips, int), np.array(anchors, int)
+
+
+def sim_loop_residual(ms, d, pairs=None) -> float:
+    """Largest distance (m) between a rod's tip and the anchor it should meet; ``pairs``
+    from ``loop_site_pairs`` (looked up by name when not given)."""
+    tips, anchors = loop_site_pairs(ms) if pairs is None else pairs
+    return float(np.max(np.linalg.norm(d.site_xpos[tips] - d.site_xpos[anchors], axis=1)))
 
 
 def format_info(info: dict) -> str:

@@ -32,6 +32,7 @@ import numpy as np
 
 from safewbc_jax import barriers, contacts, controller, metrics
 from safewbc_jax.mjx_import import import_mjx
+from safewbc_jax.modelinfo import loop_site_pairs
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.scenarios import SCENARIOS, get_scenario, start_state
 from safewbc_jax.sim.mujoco_loop import FALL_HEIGHT, load_at_stand
@@ -158,16 +159,15 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
     shape = jax.eval_shape(mjx.step, mx, dx)
     dx = jax.tree_util.tree_map(lambda a, s: jnp.asarray(a, s.dtype), dx, shape)
 
-    tips = [s for s in range(ms.nsite) if ms.site(s).name.endswith("-tip")]
-    anchors = [ms.site(ms.site(s).name[:-4] + "-anchor").id for s in tips]
+    tips, anchors = loop_site_pairs(ms)
     soles = np.array([ms.site(f"{s}-sole").id for s in ("left", "right")])
     return Plant(
         cfg=cfg, scenario=sc, model=model, mjx_model=mx, data0=dx,
         qpos_idx=np.asarray(sm.qpos_idx), qvel_idx=np.asarray(sm.qvel_idx),
         act_idx=np.asarray(sm.act_idx), gear=np.asarray(sm.gear, float),
         ctrl_lo=ms.actuator_ctrlrange[:, 0].copy(), ctrl_hi=ms.actuator_ctrlrange[:, 1].copy(),
-        base_id=ms.body("base").id, sole_sites=soles, tip_sites=np.array(tips, int),
-        anchor_sites=np.array(anchors, int), sole0_xy=d.site_xpos[soles, :2].copy(),
+        base_id=ms.body("base").id, sole_sites=soles, tip_sites=tips, anchor_sites=anchors,
+        sole0_xy=d.site_xpos[soles, :2].copy(),
         start=start, q0=q0, v0=v0, n_sub=n_sub, sim_dt=float(ms.opt.timestep), nv_sim=ms.nv)
 
 
@@ -228,15 +228,21 @@ def _start_eta(pl: Plant, name: str):
     return jax.jit(jax.vmap(eta))
 
 
+def start_etas(pl: Plant, name: str, perturb_v, thresholds) -> np.ndarray:
+    """(N, r) eta(x_0) of barrier ``name`` at N start states: the stand pose with the
+    simulator velocity perturbations ``perturb_v`` (N, nv_sim) and thresholds (N,)."""
+    v0 = np.asarray(perturb_v)[:, pl.qvel_idx] + pl.v0
+    return np.asarray(_start_eta(pl, name)(jnp.asarray(v0), jnp.asarray(thresholds)))
+
+
 def check_batch_poles(pl: Plant, params, perturb_v) -> None:
     """Theorem 1 for every rollout at its own start state (velocity perturbation and
     threshold included), before anything long compiles: PoleError names the rollout."""
     sc = pl.scenario
     if not sc.barriers:
         return
-    v0 = np.asarray(perturb_v)[:, pl.qvel_idx] + pl.v0
     for b in sc.barriers:
-        etas = np.asarray(_start_eta(pl, b.name)(jnp.asarray(v0), params.threshold[b.name]))
+        etas = start_etas(pl, b.name, perturb_v, params.threshold[b.name])
         poles = np.asarray(params.poles[b.name])
         for i in range(etas.shape[0]):
             try:

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax import barriers, contacts, controller, paths, robot, statemap
-from safewbc_jax.modelinfo import sim_loop_residual
+from safewbc_jax.modelinfo import loop_site_pairs, sim_loop_residual
 from safewbc_jax.packing import Packer
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.scenarios import Scenario, start_state
@@ -216,6 +216,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     sole_ids = [ms.site(f"{s}-sole").id for s in ("left", "right")]
     sole0 = np.array([d.site_xpos[i][:2] for i in sole_ids])
     base_id = ms.body("base").id
+    loop_pairs = loop_site_pairs(ms)
 
     n_steps = int(round((settle + duration) / cfg.control_dt))
     names = [o.name for o in scenario.outputs]
@@ -297,7 +298,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         else:
             slip = np.linalg.norm(np.array([d.site_xpos[i][:2] for i in sole_ids]) - sole0,
                                   axis=1).max()
-        log["slip"].append(slip), log["loop_residual"].append(sim_loop_residual(ms, d))
+        log["slip"].append(slip), log["loop_residual"].append(sim_loop_residual(ms, d, loop_pairs))
         log["base_z"].append(float(d.xpos[base_id][2]))
         log["qpos"].append(d.qpos.copy())
         if not np.all(np.isfinite(d.qpos)) or d.xpos[base_id][2] < FALL_HEIGHT:

@@ -9,8 +9,6 @@ and check the poles with ``barriers.check_poles``.
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from safewbc_jax.sweeps.spec import SweepSpec
@@ -18,40 +16,14 @@ from safewbc_jax.sweeps.spec import SweepSpec
 BLOCK = 256   # start states per call of the compiled eta function (one shape, one compile)
 
 
-@functools.lru_cache(maxsize=4)
-def _start(scenario: str, barrier: bool):
-    """(robot model, scenario, q0, v0 (controller), qvel index map) at ``stand``."""
-    import jax.numpy as jnp
-
-    from safewbc_jax import scenarios
-    from safewbc_jax.sim.mujoco_loop import load_at_stand
-
-    _, _, model, sm, d = load_at_stand()
-    q0, v0 = (np.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
-    sc = scenarios.get_scenario(scenario, barrier)
-    return model, sc, jnp.asarray(q0), np.asarray(v0), np.asarray(sm.qvel_idx)
-
-
-@functools.lru_cache(maxsize=8)
-def _eta_fn(scenario: str, barrier: bool, name: str):
-    import jax
-
-    from safewbc_jax import barriers
-
-    model, sc, q0, _, _ = _start(scenario, barrier)
-    b = next(x for x in sc.barriers if x.name == name)
-
-    def eta(v, thr):
-        return barriers.barrier_lie_derivatives(b.h_fn(model, thr), q0, v, b.relative_degree)[0]
-
-    return jax.jit(jax.vmap(eta))
-
-
 def start_etas(spec: SweepSpec, name: str, thresholds: np.ndarray, perturb_v: np.ndarray):
-    """(N, r) eta(x_0) of barrier ``name`` for N start states (threshold, perturbation)."""
-    _, _, _, v0, qvel_idx = _start(spec.scenario, spec.barrier)
-    fn = _eta_fn(spec.scenario, spec.barrier, name)
-    v = v0[None] + np.asarray(perturb_v)[:, qvel_idx]
+    """(N, r) eta(x_0) of barrier ``name`` for N start states (threshold, perturbation),
+    through the batched path's own start-state function (``batch.rollout.start_etas``)
+    in blocks of BLOCK (one compiled shape)."""
+    from safewbc_jax.batch import rollout
+
+    pl = rollout.plant(rollout.BatchConfig(scenario=spec.scenario, barrier=spec.barrier))
+    v = np.asarray(perturb_v, float)
     thr = np.asarray(thresholds, float)
     n = v.shape[0]
     out = []
@@ -61,7 +33,7 @@ def start_etas(spec: SweepSpec, name: str, thresholds: np.ndarray, perturb_v: np
         if m < BLOCK:   # pad: one compiled shape
             vb = np.concatenate([vb, np.repeat(vb[-1:], BLOCK - m, 0)])
             tb = np.concatenate([tb, np.repeat(tb[-1:], BLOCK - m, 0)])
-        out.append(np.asarray(fn(vb, tb))[:m])
+        out.append(rollout.start_etas(pl, name, vb, tb)[:m])
     return np.concatenate(out, axis=0)
 
 
