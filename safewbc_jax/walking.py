@@ -42,6 +42,7 @@ What differs from the paper's printed task, and why (measured in MuJoCo on this 
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -290,16 +291,84 @@ def make_scenario(name, duration, barrier):
 
 
 # --------------------------------------------------------------------------------------
-# The gait state machine (host side, MuJoCo loop)
+# The gait state machine (host: Gait in the MuJoCo loop; jax: the batched rollouts)
 # --------------------------------------------------------------------------------------
+
+class GaitState(NamedTuple):
+    """The gait's state as data (numpy on the host, jax arrays in the batched path):
+    stance side (LEFT, RIGHT, BOTH), time in the current step, both soles' positions when
+    it began, steps taken and touchdowns missed (forced switches)."""
+
+    stance: object
+    tau_step: object
+    stance0: object
+    swing0: object
+    steps: object
+    missed: object
+
+    @staticmethod
+    def standing(xp=np):
+        z3 = xp.zeros(3)
+        return GaitState(xp.asarray(BOTH), xp.asarray(0.0), z3, z3, xp.asarray(0),
+                         xp.asarray(0))
+
+
+def gait_step(g: GaitState, tau, dt, sole_left, sole_right, swing_force, weight, xp=np):
+    """One control step of the gait, as a pure function of arrays (``xp`` numpy or
+    jax.numpy; the deployment loop's ``Gait`` and the batched rollouts share it).
+    Returns (new GaitState, True where a new step began).
+
+    Walking starts at tau = 0 in left stance. A step ends at touchdown of the swing
+    foot, ``swing_force`` its sole's normal force (N) on the floor: from T/2 to T a firm
+    one (``EARLY_TOUCHDOWN`` x ``weight``: a foot that really lands early, not a scuff at
+    lift-off); from T on any force above ``TOUCH_FORCE`` (the swing reference is then below
+    the floor, and a foot that rests without pressing must not keep the step going); at
+    2 T the switch is forced and counted in ``missed``. The new stance foot's position
+    (``stance0``) and the new swing foot's (``swing0``) are the measured soles."""
+    tau, swing_force = xp.asarray(tau), xp.asarray(swing_force)
+    started = tau >= 0
+    first = started & (g.stance == BOTH)
+    stepping = started & (g.stance != BOTH)
+    ts = g.tau_step + dt
+    early = (ts >= 0.5 * STEP_T) & (swing_force > EARLY_TOUCHDOWN * weight)
+    late = (ts >= STEP_T) & (swing_force > TOUCH_FORCE)
+    forced = ts >= 2 * STEP_T
+    switch = stepping & (early | late | forced)
+    begin = first | switch
+    stance = xp.where(first, LEFT, xp.where(switch, -g.stance, g.stance))
+    left = stance > 0
+    new = GaitState(
+        stance=stance,
+        tau_step=xp.where(begin, 0.0, xp.where(stepping, ts, g.tau_step)),
+        stance0=xp.where(begin, xp.where(left, sole_left, sole_right), g.stance0),
+        swing0=xp.where(begin, xp.where(left, sole_right, sole_left), g.swing0),
+        steps=g.steps + xp.where(switch, 1, 0),
+        missed=g.missed + xp.where(switch & ~(early | late), 1, 0))
+    return new, begin
+
+
+def gait_domain(g: GaitState, heading, v_des, step_width, xp=np):
+    """The controller's domain dict of a gait state (``controller.build_qp``): contact
+    flags from the stance side, and the commands."""
+    ic = xp.stack([xp.where(g.stance < 0, 0.0, 1.0), xp.where(g.stance > 0, 0.0, 1.0)])
+    return {"stance": g.stance, "in_contact": ic, "tau_step": g.tau_step,
+            "stance0": g.stance0, "swing0": g.swing0, "heading": heading, "v_des": v_des,
+            "step_width": step_width}
+
+
+def first_step_domain(model, q, v_des=0.2):
+    """The domain at the start of the first (left-stance) step with the robot at ``q``:
+    where walking barriers, inactive while standing, meet Theorem 1 first."""
+    pl = np.asarray(robot.frame_pose(model, q, "left-sole")[0])
+    pr = np.asarray(robot.frame_pose(model, q, "right-sole")[0])
+    g = GaitState(np.float64(LEFT), np.float64(0.0), pl, pr, 0, 0)
+    return gait_domain(g, np.float64(0.0), np.float64(v_des), np.float64(STEP_WIDTH))
+
 
 @dataclasses.dataclass
 class Gait:
-    """Domain switching of the deployment loop. Walking starts at tau = 0 with the left
-    foot in stance; a step ends at touchdown of the swing foot: its contact is checked
-    from half the period on (an early touchdown ends the step early), and a late one keeps
-    the step going with the swing reference held at its landing point; after 2 T without
-    touchdown the switch is forced and counted as ``missed_touchdowns``."""
+    """Domain switching of the deployment loop (host side): a ``GaitState`` advanced by
+    ``gait_step``, with the commands."""
 
     v_des: float = 0.2
     step_width: float = STEP_WIDTH
@@ -311,42 +380,24 @@ class Gait:
     steps: int = 0
     missed_touchdowns: int = 0
 
+    def state(self) -> GaitState:
+        return GaitState(np.float64(self.stance), np.float64(self.tau_step),
+                         np.asarray(self.stance0, float).copy(),
+                         np.asarray(self.swing0, float).copy(), self.steps,
+                         self.missed_touchdowns)
+
     def domain(self):
-        ic = {BOTH: (1.0, 1.0), LEFT: (1.0, 0.0), RIGHT: (0.0, 1.0)}[self.stance]
-        return {"stance": np.float64(self.stance), "in_contact": np.array(ic),
-                "tau_step": np.float64(self.tau_step), "stance0": self.stance0.copy(),
-                "swing0": self.swing0.copy(), "heading": np.float64(self.heading),
-                "v_des": np.float64(self.v_des), "step_width": np.float64(self.step_width)}
+        return gait_domain(self.state(), np.float64(self.heading), np.float64(self.v_des),
+                           np.float64(self.step_width))
 
     def update(self, tau, dt, sole_pos, swing_force, weight):
-        """Advance by one control step. sole_pos: {"left": (3,), "right": (3,)} measured;
-        swing_force: the swinging sole's normal force on the floor now (N); weight: the
-        robot's weight (N). Returns True when a new step began.
-
-        Touchdown: from T/2 to T a force of ``EARLY_TOUCHDOWN`` x weight (a foot that
-        really lands early, not a scuff); from T on, any force above ``TOUCH_FORCE`` N
-        (the swing reference is then below the floor, and a foot that rests on the floor
-        without pressing must not keep the step going)."""
-        if tau < 0:
-            return False
-        if self.stance == BOTH:
-            self._begin(LEFT, sole_pos)
-            return True
-        self.tau_step += dt
-        early = self.tau_step >= 0.5 * STEP_T and swing_force > EARLY_TOUCHDOWN * weight
-        late = self.tau_step >= STEP_T and swing_force > TOUCH_FORCE
-        forced = self.tau_step >= 2 * STEP_T
-        if early or late or forced:
-            if not (early or late):
-                self.missed_touchdowns += 1
-            self._begin(-self.stance, sole_pos)
-            self.steps += 1
-            return True
-        return False
-
-    def _begin(self, stance, sole_pos):
-        self.stance = stance
-        self.tau_step = 0.0
-        st, sw = ("left", "right") if stance == LEFT else ("right", "left")
-        self.stance0 = np.asarray(sole_pos[st], float).copy()
-        self.swing0 = np.asarray(sole_pos[sw], float).copy()
+        """Advance by one control step (``gait_step``). sole_pos: {"left": (3,),
+        "right": (3,)} measured; swing_force: the swinging sole's normal force on the
+        floor now (N); weight: the robot's weight (N). Returns True when a new step
+        began."""
+        g, begin = gait_step(self.state(), tau, dt, np.asarray(sole_pos["left"], float),
+                             np.asarray(sole_pos["right"], float), swing_force, weight)
+        self.stance, self.tau_step = float(g.stance), float(g.tau_step)
+        self.stance0, self.swing0 = np.asarray(g.stance0), np.asarray(g.swing0)
+        self.steps, self.missed_touchdowns = int(g.steps), int(g.missed)
+        return bool(begin)

@@ -95,8 +95,10 @@ def test_fallen_rollout_is_flagged_and_isolated(arms):
 def test_bad_input_refused_before_compiling():
     cfg = BatchConfig("arms", duration=0.05, settle=SETTLE)
     p = default_params("arms", 2)
-    with pytest.raises(BatchError, match="walking runs in the MuJoCo loop only"):
-        run_batch(BatchConfig("walk"), p)
+    with pytest.raises(BatchError, match="scenario 'dance' is not available"):
+        run_batch(BatchConfig("dance"), p)
+    with pytest.raises(BatchError, match="BatchConfig.speed = nan"):
+        run_batch(BatchConfig("walk", speed=float("nan")), default_params("walk", 2))
     with pytest.raises(BatchError, match=r"push.force has shape \(3, 3\)"):
         run_batch(cfg, p, Push(np.zeros((3, 3)), np.zeros(2), np.zeros(2)))
     with pytest.raises(BatchError, match="perturb_v has shape"):

@@ -91,7 +91,7 @@ def test_grid_plan_is_row_major(tmp_path):
     ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist.p3" = [1.0]', "'p3' is not a pole of 'left_fist'"),
     # unknown scenario, barrier, output
     ('[sweep]\nscenario = "dance"', 'sweep.scenario = "dance": no such scenario'),
-    ('[sweep]\nscenario = "walk"', "the batched path does not run this scenario yet"),
+    ('[sweep]\nscenario = "walk"\n[grid]\n"poles.left_fist.p1" = [1.0]', "no barrier 'left_fist'"),
     ('[sweep]\nbarrier = true', "sweep.scenario is missing"),
     ('[sweep]\nscenario = "arms"\n[grid]\n"poles.right_foot.p1" = [1.0]', "no barrier 'right_foot'"),
     ('[sweep]\nscenario = "squat"\ntarget = "left_fist"', 'sweep.target = "left_fist": no barrier'),

@@ -1,6 +1,7 @@
 """Closed-loop MJX rollouts: the controller and the MJX physics of ``models/scene.xml``
 stepped together, scanned over time, vmapped over a batch of ControllerParams, pushes and
-initial velocity perturbations.
+initial velocity perturbations. Every scenario of the deployment loop runs here: squat,
+bow, arms, and walking ("walk", "push") with its gait state carried per rollout.
 
 One control step of one rollout (the deployment loop's step, in JAX):
 
@@ -11,6 +12,12 @@ One control step of one rollout (the deployment loop's step, in JAX):
     u from X; the last good u held where even the relaxed QP fails
     ctrl = clip(u[act_idx] / gear), push force on the base body, n_sub mjx.step
     metrics updated on the device (names of metrics.json)
+
+Walking adds, as in the deployment loop (``sim.mujoco_loop``): the domain from the gait
+state (``walking.gait_domain``), the swing leg's rates with rigid springs
+(``walking.rigid_spring_velocity``) fed to the controller, and after the physics the gait
+advanced by ``walking.gait_step`` from each sole's normal force on the floor (MJX's
+pyramid constraint forces, summed as ``mj_contactForce`` does) and the measured soles.
 
 A rollout that falls (base below ``FALL_HEIGHT`` or a non-finite state) is frozen at its
 last state and flagged; its metrics stop accumulating. A failed QP is counted and holds the
@@ -30,15 +37,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import barriers, contacts, controller, metrics
+from safewbc_jax import barriers, contacts, controller, metrics, robot, walking
 from safewbc_jax.mjx_import import import_mjx
 from safewbc_jax.modelinfo import loop_site_pairs
 from safewbc_jax.params import ControllerParams
-from safewbc_jax.scenarios import SCENARIOS, get_scenario, start_state
+from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario, start_state
 from safewbc_jax.sim.mujoco_loop import FALL_HEIGHT, load_at_stand
 from safewbc_jax.solvers import jax_qp
 
-BATCHED_SCENARIOS = tuple(SCENARIOS)   # squat, bow, arms (walking's gait is host-side)
+BATCHED_SCENARIOS = tuple(SCENARIOS) + WALKING   # squat, bow, arms, walk, push
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +59,7 @@ class BatchConfig:
     settle: float | None = None       # s of standing before it (scenario default)
     control_dt: float = 1e-3
     decimate: int = 0
+    speed: float = 0.2                # walking: commanded mean forward speed (m/s)
 
 
 class Push(NamedTuple):
@@ -99,6 +107,12 @@ class Plant:
     n_sub: int
     sim_dt: float
     nv_sim: int
+    walking: bool
+    weight: float            # N
+    floor_geom: int
+    sole_geoms: np.ndarray   # (2,) left, right
+    leg_geoms: np.ndarray    # (2, k) collision geoms of the left and the right leg
+    contact_rows: np.ndarray  # (ncon, 4) efc rows of each MJX contact's pyramid, -1 padded
 
     def schedule(self, cfg: BatchConfig) -> tuple[int, float]:
         """(control steps, settle seconds) of a config (run-time values: configs that
@@ -116,7 +130,9 @@ def _check_config(cfg: BatchConfig) -> None:
     if cfg.scenario not in BATCHED_SCENARIOS:
         known = ", ".join(BATCHED_SCENARIOS)
         raise BatchError(f"scenario {cfg.scenario!r} is not available in the batched path "
-                         f"(available: {known}; walking runs in the MuJoCo loop only)")
+                         f"(available: {known})")
+    if not np.isfinite(cfg.speed):
+        raise BatchError(f"BatchConfig.speed = {cfg.speed!r}: must be a finite number")
     for name in ("duration", "settle"):
         val = getattr(cfg, name)
         if val is not None and not (np.isfinite(val) and val >= 0):
@@ -127,6 +143,22 @@ def _check_config(cfg: BatchConfig) -> None:
         raise BatchError(f"BatchConfig.control_dt = {cfg.control_dt!r}: must be positive")
     if int(cfg.decimate) != cfg.decimate or cfg.decimate < 0:
         raise BatchError(f"BatchConfig.decimate = {cfg.decimate!r}: must be an integer >= 0")
+
+
+def _contact_rows(mjx, ms) -> np.ndarray:
+    """The efc rows of each of MJX's (fixed) contact slots: 2 (condim - 1) pyramid edges
+    (1 for a frictionless contact), -1 padded to 4."""
+    if ms.opt.cone != 0:
+        raise BatchError("the batched path reads contact forces of pyramidal cones only")
+    con = mjx.make_data(ms)._impl.contact
+    addr, dim = np.asarray(con.efc_address), np.asarray(con.dim)
+    n = np.where(dim == 1, 1, 2 * (dim - 1))
+    width = max(int(n.max()) if n.size else 1, 1)
+    rows = np.full((addr.size, width), -1)
+    for i, (a, k) in enumerate(zip(addr, n)):
+        if a >= 0:
+            rows[i, :k] = a + np.arange(k)
+    return rows
 
 
 def plant(cfg: BatchConfig) -> Plant:
@@ -151,6 +183,11 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
     q0, v0 = (np.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
     start = start_state(model, jnp.asarray(q0))
     start["y0"] = controller.output_start_values(model, sc, jnp.asarray(q0))
+    is_walking = cfg.scenario in WALKING
+    if is_walking:   # as the deployment loop; "settle" is set per run (run-time value)
+        start["blend"] = jnp.asarray(sc.blend)
+        start["half_width"] = robot.frame_pose(model, jnp.asarray(q0), "left-sole")[0][1] \
+            - start["origin"][1]
 
     mx = mjx.put_model(ms)
     dx = mjx.put_data(ms, d)
@@ -161,6 +198,10 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
 
     tips, anchors = loop_site_pairs(ms)
     soles = np.array([ms.site(f"{s}-sole").id for s in ("left", "right")])
+    legs = [[g for g in range(ms.ngeom) if ms.geom(g).name.startswith(side)
+             and ms.geom(g).name.endswith("-collision")] for side in ("left", "right")]
+    if len(legs[0]) != len(legs[1]):
+        raise BatchError("the two legs have different numbers of collision geoms")
     return Plant(
         cfg=cfg, scenario=sc, model=model, mjx_model=mx, data0=dx,
         qpos_idx=np.asarray(sm.qpos_idx), qvel_idx=np.asarray(sm.qvel_idx),
@@ -168,7 +209,11 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
         ctrl_lo=ms.actuator_ctrlrange[:, 0].copy(), ctrl_hi=ms.actuator_ctrlrange[:, 1].copy(),
         base_id=ms.body("base").id, sole_sites=soles, tip_sites=tips, anchor_sites=anchors,
         sole0_xy=d.site_xpos[soles, :2].copy(),
-        start=start, q0=q0, v0=v0, n_sub=n_sub, sim_dt=float(ms.opt.timestep), nv_sim=ms.nv)
+        start=start, q0=q0, v0=v0, n_sub=n_sub, sim_dt=float(ms.opt.timestep), nv_sim=ms.nv,
+        walking=is_walking, weight=float(-model.gravity[2] * model.total_mass),
+        floor_geom=ms.geom("floor").id,
+        sole_geoms=np.array([ms.geom(f"{s}-sole").id for s in ("left", "right")]),
+        leg_geoms=np.array(legs), contact_rows=_contact_rows(mjx, ms))
 
 
 # ----------------------------------------------------------------------------- validation
@@ -220,9 +265,11 @@ def _start_eta(pl: Plant, name: str):
     """jit(vmap): (v0, threshold) -> eta(x0) of barrier ``name`` at the stand pose."""
     b = next(b for b in pl.scenario.barriers if b.name == name)
     q0 = jnp.asarray(pl.q0)
+    # a walking barrier (active in single support only) at the start of the first step
+    domain = None if b.active is None else walking.first_step_domain(pl.model, q0)
 
     def eta(v, thr):
-        return barriers.barrier_lie_derivatives(b.h_fn(pl.model, thr), q0, v,
+        return barriers.barrier_lie_derivatives(b.h_fn(pl.model, thr, domain), q0, v,
                                                 b.relative_degree)[0]
 
     return jax.jit(jax.vmap(eta))
@@ -230,7 +277,9 @@ def _start_eta(pl: Plant, name: str):
 
 def start_etas(pl: Plant, name: str, perturb_v, thresholds) -> np.ndarray:
     """(N, r) eta(x_0) of barrier ``name`` at N start states: the stand pose with the
-    simulator velocity perturbations ``perturb_v`` (N, nv_sim) and thresholds (N,)."""
+    simulator velocity perturbations ``perturb_v`` (N, nv_sim) and thresholds (N,). A
+    walking barrier is evaluated in the domain of the first step
+    (``walking.first_step_domain``), where it becomes active."""
     v0 = np.asarray(perturb_v)[:, pl.qvel_idx] + pl.v0
     return np.asarray(_start_eta(pl, name)(jnp.asarray(v0), jnp.asarray(thresholds)))
 
@@ -262,42 +311,56 @@ class Acc(NamedTuple):
     n_relaxed: jax.Array
     n_failed: jax.Array
     track_sq: dict
-    track_n: jax.Array
+    track_n: dict
     h_min: dict
     zmp_min: jax.Array
     slip_max: jax.Array
     torque_max: jax.Array
     loop_max: jax.Array
+    # walking (left at their start values in the other scenarios)
+    legs_prev: jax.Array
+    leg_collisions: jax.Array
+    leg_contact_steps: jax.Array
+    clearance_min: jax.Array
+    com_x_half: jax.Array
+    com_x_end: jax.Array
 
 
 def _acc0(pl: Plant, dtype) -> Acc:
     sc = pl.scenario
     z = jnp.zeros((), dtype)
     inf = jnp.asarray(jnp.inf, dtype)
+    i0 = jnp.zeros((), jnp.int32)
     return Acc(alive=jnp.asarray(True), fell_step=jnp.asarray(-1, jnp.int32),
-               n_none=jnp.zeros((), jnp.int32), n_relaxed=jnp.zeros((), jnp.int32),
-               n_failed=jnp.zeros((), jnp.int32), track_sq={o.name: z for o in sc.outputs},
-               track_n=jnp.zeros((), jnp.int32),
+               n_none=i0, n_relaxed=i0, n_failed=i0, track_sq={o.name: z for o in sc.outputs},
+               track_n={o.name: i0 for o in sc.outputs},
                h_min={b.name: inf for b in sc.barriers + sc.monitors},
-               zmp_min=inf, slip_max=z, torque_max=z, loop_max=z)
+               zmp_min=inf, slip_max=z, torque_max=z, loop_max=z,
+               legs_prev=jnp.asarray(False), leg_collisions=i0, leg_contact_steps=i0,
+               clearance_min=inf, com_x_half=jnp.asarray(jnp.nan, dtype),
+               com_x_end=jnp.asarray(jnp.nan, dtype))
 
 
 class Run(NamedTuple):
     """Run-time (traced) values shared by the batch: the scenario with its settle time,
-    the number of control steps."""
+    the number of control steps; walking: the commanded speed, and the control step at
+    which the second half of the walk begins (``avg_forward_speed``, as in
+    ``metrics.summarize``)."""
 
     scenario: object
     n_steps: jax.Array
+    speed: jax.Array
+    k_half: jax.Array
 
 
-def _control(pl: Plant, sc, params, q, v, tau, last_u):
+def _control(pl: Plant, sc, params, q, v, tau, last_u, start, domain):
     """One controller step: (u to apply, lambda, solver Result, aux of build_qp)."""
     model = pl.model
     nv, nu = model.nv, model.nu
-    terms = controller.robot_terms(model, sc, q, v)
-    qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, pl.start,
+    terms = controller.robot_terms(model, sc, q, v, domain)
+    qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, start,
                                    jnp.asarray(sc.in_contact, q.dtype),
-                                   barrier_on=pl.cfg.barrier)
+                                   barrier_on=pl.cfg.barrier, domain=domain)
     res = jax_qp.solve(qpm, nv=nv, nu=nu, p_blockdiag=True)
     ok = res.fallback != jax_qp.FALLBACK_FAILED
     u = jnp.where(ok, res.x[nv:nv + nu], last_u)
@@ -317,22 +380,34 @@ def _physics(pl: Plant, dx, u, push: Push, tau):
     return dx
 
 
-def _update(pl: Plant, acc: Acc, live, tau, q, u, lam, res, aux, dx_new) -> Acc:
-    """Metrics of this step (counted where ``live``: alive and inside the run)."""
+def _update(pl: Plant, acc: Acc, live, tau, q, u, lam, res, aux, dx_new, domain) -> Acc:
+    """Metrics of this step (counted where ``live``: alive and inside the run). Walking:
+    output components not tracked in this domain are left out of the tracking RMS, and
+    in single support the slip is the stance sole's, from where its step began (as
+    ``metrics.summarize`` and the MuJoCo loop)."""
     model, sc = pl.model, pl.scenario
     fb = res.fallback
     count = lambda c: jnp.where(live & c, 1, 0).astype(jnp.int32)  # noqa: E731
     track = live & (tau >= metrics.TRACKING_SKIP_S)
-    track_sq = {}
+    mask = sc.weight_mask(domain) if domain is not None else {}
+    track_sq, track_n = {}, {}
     for o in sc.outputs:
         ya, yd = aux["outputs"][o.name]
-        track_sq[o.name] = acc.track_sq[o.name] + jnp.where(track, jnp.sum((ya - yd) ** 2), 0.0)
+        m = mask.get(o.name, jnp.ones(o.dim))
+        row = track & jnp.any(m > 0)
+        track_sq[o.name] = acc.track_sq[o.name] + jnp.where(
+            row, jnp.sum(jnp.where(m > 0, ya - yd, 0.0) ** 2), 0.0)
+        track_n[o.name] = acc.track_n[o.name] + jnp.where(row, 1, 0).astype(jnp.int32)
     h_min = {n: jnp.where(live, jnp.minimum(acc.h_min[n], aux["barrier_h"][n]), acc.h_min[n])
              for n in acc.h_min}
     margin = contacts.zmp_margin(model, q, lam, jnp.asarray(sc.in_contact, q.dtype))
     zmp_ok = live & (tau >= 0) & (fb != jax_qp.FALLBACK_FAILED)
     sites = dx_new.site_xpos
     slip = jnp.max(jnp.linalg.norm(sites[pl.sole_sites, :2] - pl.sole0_xy, axis=-1))
+    if domain is not None:
+        stance = domain["stance"]
+        st = jnp.where(stance > 0, sites[pl.sole_sites[0], :2], sites[pl.sole_sites[1], :2])
+        slip = jnp.where(stance != 0, jnp.linalg.norm(st - domain["stance0"][:2]), slip)
     loop = jnp.max(jnp.linalg.norm(sites[pl.tip_sites] - sites[pl.anchor_sites], axis=-1))
     ratio = jnp.max(jnp.abs(u) / model.torque_limit)
     mx = lambda old, new: jnp.where(live, jnp.maximum(old, new), old)  # noqa: E731
@@ -340,7 +415,7 @@ def _update(pl: Plant, acc: Acc, live, tau, q, u, lam, res, aux, dx_new) -> Acc:
         n_none=acc.n_none + count(fb == jax_qp.FALLBACK_NONE),
         n_relaxed=acc.n_relaxed + count(fb == jax_qp.FALLBACK_RELAXED),
         n_failed=acc.n_failed + count(fb == jax_qp.FALLBACK_FAILED),
-        track_sq=track_sq, track_n=acc.track_n + jnp.where(track, 1, 0).astype(jnp.int32),
+        track_sq=track_sq, track_n=track_n,
         h_min=h_min, zmp_min=jnp.where(zmp_ok, jnp.minimum(acc.zmp_min, margin), acc.zmp_min),
         slip_max=mx(acc.slip_max, slip), loop_max=mx(acc.loop_max, loop),
         torque_max=mx(acc.torque_max, ratio))
@@ -351,17 +426,71 @@ def _fallen(pl: Plant, dx) -> jax.Array:
     return ~finite | (dx.xpos[pl.base_id, 2] < FALL_HEIGHT)
 
 
+def _pair(g, a, b):
+    """(ncon,) True where a contact's geom pair is one of ``a`` with one of ``b``."""
+    ina = lambda x: jnp.any(x[:, None] == jnp.atleast_1d(a)[None], axis=1)  # noqa: E731
+    inb = lambda x: jnp.any(x[:, None] == jnp.atleast_1d(b)[None], axis=1)  # noqa: E731
+    return (ina(g[:, 0]) & inb(g[:, 1])) | (inb(g[:, 0]) & ina(g[:, 1]))
+
+
+def sole_forces_and_leg_contact(pl: Plant, dx):
+    """((2,) normal force of the left and the right sole on the floor (N), whether a
+    geom of one leg touches one of the other leg), from MJX's contacts: the normal force
+    of a pyramidal contact is the sum of its 2 (condim - 1) edge forces, as
+    ``mj_contactForce`` computes it (the deployment loop's ``_floor_and_leg_contacts``)."""
+    con = dx._impl.contact
+    rows = np.asarray(pl.contact_rows)
+    f = dx._impl.efc_force[np.maximum(rows, 0)] * (rows >= 0)
+    normal = jnp.sum(f, axis=1) * (con.efc_address >= 0)
+    g = con.geom
+    soles = jnp.stack([jnp.sum(jnp.where(_pair(g, pl.floor_geom, pl.sole_geoms[i]), normal, 0.0))
+                       for i in range(2)])
+    legs = jnp.any(_pair(g, pl.leg_geoms[0], pl.leg_geoms[1]) & (con.dist < 0))
+    return soles, legs
+
+
+def _walk_update(pl: Plant, acc: Acc, live, k, tau, run: Run, aux, gait_new, legs, dx_new):
+    """Walking metrics of this step (``metrics.summarize``'s walking block)."""
+    sites = dx_new.site_xpos
+    clearance = sites[pl.sole_sites[0], 1] - sites[pl.sole_sites[1], 1]
+    ss = live & (tau >= 0) & (gait_new.stance != 0)
+    com_x = aux["outputs"]["com"][0][0]
+    return acc._replace(
+        leg_collisions=acc.leg_collisions + jnp.where(live & legs & ~acc.legs_prev, 1, 0)
+        .astype(jnp.int32),
+        leg_contact_steps=acc.leg_contact_steps + jnp.where(live & legs, 1, 0).astype(jnp.int32),
+        legs_prev=jnp.where(live, legs, acc.legs_prev),
+        clearance_min=jnp.where(ss, jnp.minimum(acc.clearance_min, clearance), acc.clearance_min),
+        com_x_half=jnp.where(live & (k == run.k_half), com_x, acc.com_x_half),
+        com_x_end=jnp.where(live, com_x, acc.com_x_end))
+
+
 def _step(pl: Plant, run: Run, params, push: Push, carry, k):
     """One control step of one rollout; returns the new carry and this step's record."""
-    dx, last_u, acc = carry
+    dx, last_u, acc, gait = carry
     sc = run.scenario
+    dt = pl.cfg.control_dt
     inside = k < run.n_steps
-    tau = k * pl.cfg.control_dt - sc.settle
+    tau = k * dt - sc.settle
     q, v = dx.qpos[pl.qpos_idx], dx.qvel[pl.qvel_idx]
-    u, lam, res, aux = _control(pl, sc, params, q, v, tau, last_u)
+    domain, start = None, pl.start
+    if pl.walking:
+        domain = walking.gait_domain(gait, jnp.zeros((), q.dtype), run.speed,
+                                     jnp.asarray(walking.STEP_WIDTH, q.dtype), xp=jnp)
+        v = walking.rigid_spring_velocity(pl.model, q, v, domain["stance"])
+        start = {**pl.start, "settle": sc.settle}
+    u, lam, res, aux = _control(pl, sc, params, q, v, tau, last_u, start, domain)
     dx_new = _physics(pl, dx, u, push, tau)
     live = acc.alive & inside
-    acc = _update(pl, acc, live, tau, q, u, lam, res, aux, dx_new)
+    acc = _update(pl, acc, live, tau, q, u, lam, res, aux, dx_new, domain)
+    if pl.walking:
+        soles, legs = sole_forces_and_leg_contact(pl, dx_new)
+        sites = dx_new.site_xpos
+        swing_force = jnp.where(gait.stance > 0, soles[1], soles[0])
+        new, _ = walking.gait_step(gait, tau, dt, sites[pl.sole_sites[0]],
+                                   sites[pl.sole_sites[1]], swing_force, pl.weight, xp=jnp)
+        acc = _walk_update(pl, acc, live, k, tau, run, aux, new, legs, dx_new)
+        gait = jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b), new, gait)
     fell_now = live & _fallen(pl, dx_new)
     keep = live & ~fell_now
     dx = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), dx_new, dx)
@@ -369,43 +498,50 @@ def _step(pl: Plant, run: Run, params, push: Push, carry, k):
                        fell_step=jnp.where(fell_now, k, acc.fell_step).astype(jnp.int32))
     record = {"tau": tau, "alive": acc.alive, "qpos": dx.qpos, "u": u, "status": res.status,
               "fallback": res.fallback, "qp_iterations": res.iterations,
+              "stance": gait.stance,
               **{f"y_{n}": aux["outputs"][n][0] for n in aux["outputs"]},
               **{f"yd_{n}": aux["outputs"][n][1] for n in aux["outputs"]},
               **{f"h_{n}": aux["barrier_h"][n] for n in aux["barrier_h"]}}
-    return (dx, jnp.where(keep, u, last_u), acc), record
+    return (dx, jnp.where(keep, u, last_u), acc, gait), record
 
 
 def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, perturb_v,
-             n_steps, settle):
-    """One rollout from the stand keyframe: (final Acc, decimated records or None).
+             n_steps, settle, speed, k_half):
+    """One rollout from the stand keyframe: (final Acc, final GaitState, decimated
+    records or None).
 
     Without records the time loop is a ``fori_loop`` over the run-time ``n_steps``; with
     records (every ``decimate``-th step, ``n_records`` of them: static) a scan."""
-    run = Run(dataclasses.replace(pl.scenario, settle=settle), n_steps)
+    run = Run(dataclasses.replace(pl.scenario, settle=settle), n_steps, speed, k_half)
     dx = pl.data0.replace(qvel=pl.data0.qvel + perturb_v)
-    carry = (dx, jnp.zeros(pl.model.nu, dx.qvel.dtype), _acc0(pl, dx.qvel.dtype))
+    dtype = dx.qvel.dtype
+    gait = walking.GaitState(jnp.asarray(walking.BOTH, dtype), jnp.zeros((), dtype),
+                             jnp.zeros(3, dtype), jnp.zeros(3, dtype),
+                             jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+    carry = (dx, jnp.zeros(pl.model.nu, dtype), _acc0(pl, dtype), gait)
     step = functools.partial(_step, pl, run, params, push)
     if not decimate:
-        _, _, acc = jax.lax.fori_loop(0, n_steps, lambda k, c: step(c, k)[0], carry)
-        return acc, None
+        _, _, acc, gait = jax.lax.fori_loop(0, n_steps, lambda k, c: step(c, k)[0], carry)
+        return acc, gait, None
 
     def outer(c, k0):
         c, rec = step(c, k0)
         c = jax.lax.fori_loop(k0 + 1, k0 + decimate, lambda k, cc: step(cc, k)[0], c)
         return c, rec
 
-    (_, _, acc), recs = jax.lax.scan(outer, carry, decimate * jnp.arange(n_records))
-    return acc, recs
+    (_, _, acc, gait), recs = jax.lax.scan(outer, carry, decimate * jnp.arange(n_records))
+    return acc, gait, recs
 
 
 @functools.lru_cache(maxsize=16)
 def _compiled(pl: Plant, decimate: int, n_records: int):
     fn = functools.partial(_rollout, pl, decimate, n_records)
-    return jax.jit(jax.vmap(fn, in_axes=(0, 0, 0, None, None)))
+    return jax.jit(jax.vmap(fn, in_axes=(0, 0, 0, None, None, None, None)))
 
 
-def _finish(pl: Plant, acc: Acc) -> dict:
-    """Acc (batched, numpy) -> flat metric columns, names as in metrics.json."""
+def _finish(pl: Plant, acc: Acc, gait, n_steps: int, k_half: int) -> dict:
+    """Acc and GaitState (batched, numpy) -> flat metric columns, names as in
+    metrics.json."""
     sc, cfg = pl.scenario, pl.cfg
     out = {"fell": ~acc.alive, "fell_time_s": np.where(acc.alive, np.nan,
                                                       acc.fell_step * cfg.control_dt),
@@ -415,13 +551,38 @@ def _finish(pl: Plant, acc: Acc) -> dict:
            "zmp_margin_min": np.where(acc.zmp_min == np.inf, np.nan, acc.zmp_min),
            "foot_slip_max": acc.slip_max, "torque_ratio_max": acc.torque_max,
            "loop_residual_max": acc.loop_max}
-    n = np.maximum(acc.track_n, 1)
     for o in sc.outputs:
-        out[f"tracking_rms.{o.name}"] = np.where(acc.track_n > 0,
-                                                 np.sqrt(acc.track_sq[o.name] / n), np.nan)
+        cnt = acc.track_n[o.name]
+        out[f"tracking_rms.{o.name}"] = np.where(
+            cnt > 0, np.sqrt(acc.track_sq[o.name] / np.maximum(cnt, 1)), np.nan)
     for name, h in acc.h_min.items():
         out[f"barrier_min.{name}"] = np.where(h == np.inf, np.nan, h)
+    if pl.walking:
+        # the second half of the walk, as metrics.summarize (NaN for a fallen rollout, whose
+        # walk ended early, and for walks too short to have two halves)
+        dt = cfg.control_dt
+        span = (n_steps - 1) * dt - k_half * dt
+        ok = acc.alive & (k_half >= 0)
+        out["avg_forward_speed"] = np.where(ok, (acc.com_x_end - acc.com_x_half)
+                                            / max(span, 1e-9), np.nan)
+        out["steps_taken"] = gait.steps
+        out["leg_collisions"] = acc.leg_collisions
+        out["leg_contact_steps"] = acc.leg_contact_steps
+        out["swing_clearance_min"] = np.where(acc.clearance_min == np.inf, np.nan,
+                                              acc.clearance_min)
+        out["missed_touchdowns"] = gait.missed
     return {k: np.asarray(v) for k, v in out.items()}
+
+
+def half_walk_step(n_steps: int, settle: float, dt: float) -> int:
+    """The control step where the second half of the motion begins (t >= midpoint of the
+    motion's first and last step times), -1 if the motion has fewer than 3 steps: the
+    window of ``metrics.summarize``'s avg_forward_speed, with the same float operations."""
+    t = np.arange(n_steps) * dt
+    tw = t[t - settle >= 0]
+    if tw.size <= 2:
+        return -1
+    return int(np.searchsorted(t, tw[0] + 0.5 * (tw[-1] - tw[0])))
 
 
 def _pad(tree, batch: int, padded: int):
@@ -456,7 +617,9 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     in ``metrics.json`` with nested names flattened by "." (``tracking_rms.com``,
     ``barrier_min.left_fist``), plus ``fell_time_s``; trajectories None, or with
     ``cfg.decimate`` = k a dict of arrays (B, T, ...) of every k-th control step (tau,
-    alive, qpos, u, status, fallback, y_<output>, yd_<output>, h_<barrier>)."""
+    alive, qpos, u, status, fallback, qp_iterations, stance, y_<output>, yd_<output>,
+    h_<barrier>). Walking adds avg_forward_speed, steps_taken, leg_collisions,
+    leg_contact_steps, swing_clearance_min and missed_touchdowns."""
     pl = plant(cfg)
     if push is None or perturb_v is None:
         leaves = jax.tree_util.tree_leaves(params)
@@ -471,10 +634,13 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     ndev = len(jax.local_devices())
     padded = -(-batch // ndev) * ndev
     args = _shard(_pad((params, push, perturb_v), batch, padded))
-    with jax_qp.blas_threads(1):      # see safewbc_jax/__init__.py
-        n_steps, settle = pl.schedule(cfg)
+    n_steps, settle = pl.schedule(cfg)
+    k_half = half_walk_step(n_steps, settle, cfg.control_dt)
     dec = int(cfg.decimate)
     fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0)
-    acc, recs = fn(*args, jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle))
-    acc, recs = jax.tree_util.tree_map(lambda a: np.asarray(a)[:batch], (acc, recs))
-    return _finish(pl, acc), recs
+    with jax_qp.blas_threads(1):      # see safewbc_jax/__init__.py
+        acc, gait, recs = fn(*args, jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle),
+                             jnp.asarray(cfg.speed), jnp.asarray(k_half, jnp.int32))
+        acc, gait, recs = jax.tree_util.tree_map(lambda a: np.asarray(a)[:batch],
+                                                 (acc, gait, recs))
+    return _finish(pl, acc, gait, n_steps, k_half), recs

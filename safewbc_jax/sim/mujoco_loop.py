@@ -148,12 +148,17 @@ def _floor_and_leg_contacts(ms, d, sole_geoms, floor_geom, leg_geoms):
 
 def check_barrier_poles(model, scenario, params, q, v):
     """Theorem 1 at the start state, before anything compiles: raises barriers.PoleError
-    naming the barrier, the pole and its bound."""
+    naming the barrier, the pole and its bound. A barrier active only in some domains
+    (the swing-foot barrier) is checked at the start of the first step, from this state
+    (``walking.first_step_domain``)."""
     for b in scenario.barriers:
-        if b.active is not None:
-            continue  # checked when its domain starts (walking)
-        eta0 = barriers.barrier_lie_derivatives(b.h_fn(model, params.threshold[b.name]), q, v,
-                                                b.relative_degree)[0]
+        domain = None
+        if b.active is not None:   # a walking barrier: where its domain first starts
+            from safewbc_jax.walking import first_step_domain
+
+            domain = first_step_domain(model, q)
+        eta0 = barriers.barrier_lie_derivatives(b.h_fn(model, params.threshold[b.name], domain),
+                                                q, v, b.relative_degree)[0]
         barriers.check_poles(b.name, np.asarray(eta0), np.asarray(params.poles[b.name]))
 
 

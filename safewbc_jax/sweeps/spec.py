@@ -231,36 +231,18 @@ def _quote(key: str) -> str:
 
 def _scenario_info(src, name):
     """(enforced barriers, monitored barriers, outputs, pole counts) of a scenario, or a
-    SpecError naming the scenarios the batched path offers."""
+    SpecError naming the scenarios there are (the batched path runs them all)."""
     from safewbc_jax import scenarios
 
     known = list(scenarios.SCENARIOS) + list(scenarios.WALKING)
     if not isinstance(name, str) or name not in known:
         raise SpecError(f"{src}: sweep.scenario = {_fmt(name)}: no such scenario; "
                         f"scenarios are {', '.join(known)}")
-    supported = batched_scenarios()
-    if supported is not None and name not in supported:
-        raise SpecError(f"{src}: sweep.scenario = {_fmt(name)}: the batched path does not run "
-                        f"this scenario yet; it runs {', '.join(sorted(supported))}")
     sc = scenarios.get_scenario(name, True)
     params = sc.default_params()
     return (tuple(b.name for b in sc.barriers), tuple(b.name for b in sc.monitors),
             tuple(o.name for o in sc.outputs),
             {k: int(np.size(v)) for k, v in params.poles.items()}, params)
-
-
-def batched_scenarios():
-    """Scenario names the batched path runs, as ``safewbc_jax.batch.rollout`` says
-    (``BATCHED_SCENARIOS``); None when it is not there."""
-    try:
-        from safewbc_jax.batch import rollout
-    except ImportError:
-        return None
-    for attr in ("BATCHED_SCENARIOS", "SUPPORTED_SCENARIOS"):
-        names = getattr(rollout, attr, None)
-        if names is not None:
-            return set(names)
-    return None
 
 
 _POLE_RE = re.compile(r"^p([1-9][0-9]*)$")
