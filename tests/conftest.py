@@ -81,3 +81,14 @@ def arms_deployment(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("arms_deployment")
     return run_scenario("arms", duration=8.0, settle=1.0, out=out, quiet=True), out
+
+
+@pytest.fixture(scope="session")
+def short_walk_deployment(tmp_path_factory):
+    """One MuJoCo + PIQP run of a short walk (2.2 s of walking after a 1.2 s settle: six
+    steps), shared by the walking test and the MJX walking consistency test:
+    (metrics, output directory)."""
+    from safewbc_jax.runner import run_scenario
+
+    out = tmp_path_factory.mktemp("short_walk_deployment")
+    return run_scenario("walk", duration=2.2, settle=1.2, out=out, quiet=True), out

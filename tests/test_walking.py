@@ -173,6 +173,38 @@ def test_gait_switches_domains_and_swaps_feet():
     assert g.stance == RIGHT and g.missed_touchdowns == 1
 
 
+def test_gait_step_in_jax_follows_the_host_gait():
+    """The batched rollouts advance the gait with ``gait_step`` in jax.numpy (jit, scan);
+    the deployment loop with numpy through ``Gait``: the same switches, counts and feet
+    over 3 s of random touchdown forces (firm, light and absent touches, so the early,
+    late and forced rules all fire)."""
+    rng = np.random.default_rng(3)
+    w, dt, n = 9.81 * 47.0, 1e-3, 3000
+    tau = np.arange(n) * dt - 0.2
+    force = np.where(rng.random(n) < 0.02, rng.choice([0.3 * w, 2 * walking.TOUCH_FORCE], n), 0.0)
+    force[1500:2400] = 0.0   # a long miss: forced switch
+    soles = rng.normal(size=(n, 2, 3))
+
+    g = walking.Gait()
+    host = []
+    for k in range(n):
+        g.update(tau[k], dt, {"left": soles[k, 0], "right": soles[k, 1]}, force[k], w)
+        host.append((g.stance, g.tau_step, *g.stance0, *g.swing0, g.steps, g.missed_touchdowns))
+
+    def body(st, x):
+        t, f, s = x
+        st, _ = walking.gait_step(st, t, dt, s[0], s[1], f, w, xp=jnp)
+        return st, jnp.concatenate([jnp.stack([st.stance, st.tau_step]), st.stance0, st.swing0,
+                                    jnp.stack([st.steps, st.missed]).astype(float)])
+
+    st0 = walking.GaitState(jnp.asarray(BOTH), jnp.asarray(0.0), jnp.zeros(3), jnp.zeros(3),
+                            jnp.asarray(0), jnp.asarray(0))
+    _, dev = jax.jit(lambda: jax.lax.scan(body, st0, (tau, force, soles)))()
+    host = np.array(host, float)
+    np.testing.assert_array_equal(np.asarray(dev), host)
+    assert host[-1, -2] >= 6 and host[-1, -1] >= 1   # steps taken, a forced switch counted
+
+
 @pytest.mark.parametrize("stance", [LEFT, RIGHT, BOTH])
 def test_rigid_spring_velocity_keeps_the_swing_leg_on_its_chains(ctrl_mj, rm, stance):
     rng = np.random.default_rng(11)
@@ -205,12 +237,11 @@ def test_rigid_spring_velocity_keeps_the_swing_leg_on_its_chains(ctrl_mj, rm, st
 
 
 @pytest.mark.slow
-def test_short_walk(tmp_path):
-    """A few steps from standing: no fall, steps about one per T, forward progress, the
-    swing reference followed, the feet apart, no QP failure."""
-    from safewbc_jax.runner import run_scenario
-
-    m = run_scenario("walk", duration=2.2, settle=1.2, out=tmp_path, quiet=True)
+def test_short_walk(short_walk_deployment):
+    """A few steps from standing (conftest: 2.2 s after a 1.2 s settle): no fall, steps
+    about one per T, forward progress, the swing reference followed, the feet apart, no
+    QP failure."""
+    m, tmp_path = short_walk_deployment
     assert json.loads((tmp_path / "metrics.json").read_text()) == json.loads(json.dumps(m))
     assert not m["fell"]
     assert m["qp_failed"] == 0
