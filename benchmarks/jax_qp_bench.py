@@ -1,28 +1,46 @@
 """Amortized time per controller QP: the batched JAX solver against PIQP, side by side.
 
-For each batch size B (default 1 4 16 64 256 1024) a batch of B recorded controller QPs
+For each batch size B (default 1 256 1024) a batch of B recorded controller QPs
 (tests/data/controller_qps.npz, cycled; or QPs generated at random states when the
 fixture is absent) is solved, alternately and repeatedly:
 
-  jax         safewbc_jax.solvers.jax_qp.solve_batch(batch): equality elimination,
-              Mehrotra interior point, active-set polish and fallback for the whole batch
-              in one jitted call (compiled before timing; float64). Time per call / B.
-  jax_f32     the same in float32 (--f32; accuracy is only ~1e-2 on these QPs)
+  jax         safewbc_jax.solvers.jax_qp.solve_batch(batch, chunk=None): equality
+              elimination, Mehrotra interior point, active-set polish and fallback for the
+              whole batch as one vmap in one jitted call (compiled before timing; float64).
+              Time per call / B.
+  jax_chunkN  the same with chunk=N: the batch cut into equal chunks of at most N QPs
+              (padded with copies of its last QP) and solved one chunk after the other
+              (lax.map over the chunks) inside the jitted call; one column per --chunks
+              value (default: the solver's CPU default, jax_qp.CPU_CHUNK). The same
+              compiled function as jax when B <= N. Its largest |x - x_jax| over the
+              batch is reported (the chunked solve must reproduce the unchunked one).
+  jax_f32     float32 with the solver's default chunk (--f32; accuracy is only ~1e-2 on
+              these QPs)
   piqp        PiqpSolver().solve(qp) on the full 78-variable QP, one QP after the other
               (the reference path of the deployment loop). Loop time / B.
   piqp_red    the deployment path: reduce.eliminate_equalities_np + PiqpSolver().solve on
               the 20-variable QP + x = x0 + N u, one QP after the other. Loop time / B.
 
+The batch of size B is the fixture's first B QPs (cycled), so rows of different B solve
+different QPs: the fixture is ordered by scenario (squat, bow, arms, arms without
+barrier, walking) and its first 256 QPs (squat and bow) are easier (at most 8
+interior-point iterations) than the first 1,024 (up to 22); --limit N cycles the first N
+only, to compare batch sizes on the same QPs.
+
 Every figure is the median over --reps repetitions of amortized microseconds per QP
-(the PIQP loops do not depend on B; they are re-timed at every B so that both sides see
-the same machine load). The agreement of the JAX solutions with PIQP's (max |dx| relative
+(the PIQP loops solve one QP at a time and are timed on the same QPs as the JAX solver,
+at most --piqp-max-batch of them, alternating with it so that both see the same machine
+load). The agreement of the JAX solutions with PIQP's (max |dx| relative
 to max |x|) is printed too.
 
 OpenBLAS threads: this script sets OPENBLAS_NUM_THREADS=1 before numpy loads (override
 with --blas-threads N). On this 2-core machine OpenBLAS worker threads left spinning by
 one LAPACK call compete with XLA's thread pool and slow both paths by up to 50x.
 
-    python benchmarks/jax_qp_bench.py [--batches 1 16 256 1024] [--reps 7] [--json]
+    python benchmarks/jax_qp_bench.py [--batches 1 256 1024] [--chunks 64 128 256]
+                                      [--reps 7] [--json]
+
+With --json the last line of stdout is one JSON object (the rows, medians in us per QP).
 """
 
 from __future__ import annotations
@@ -86,7 +104,9 @@ def generate(n):
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--batches", type=int, nargs="+", default=[1, 4, 16, 64, 256, 1024])
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 256, 1024])
+    ap.add_argument("--chunks", type=int, nargs="+", default=None,
+                    help="chunk sizes of the chunked solver (default: jax_qp.CPU_CHUNK)")
     ap.add_argument("--reps", type=int, default=7, help="timed repetitions per batch size")
     ap.add_argument("--qps", default=str(FIXTURE), help="fixture .npz (default: tests/data)")
     ap.add_argument("--limit", type=int, default=None, help="use the first N QPs of the file")
@@ -98,8 +118,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--blas-threads", type=int, default=1)
     ap.add_argument("--json", action="store_true", help="print one JSON object last")
     args = ap.parse_args(argv)
-    if min(args.batches) < 1 or args.reps < 1:
-        ap.error("batch sizes and --reps must be >= 1")
+    if min(args.batches) < 1 or args.reps < 1 or min(args.chunks or [1]) < 1:
+        ap.error("batch sizes, chunk sizes and --reps must be >= 1")
     os.environ["OPENBLAS_NUM_THREADS"] = str(args.blas_threads)
     if "numpy" in sys.modules:
         print("warning: numpy was imported before OPENBLAS_NUM_THREADS was set",
@@ -140,7 +160,12 @@ def main(argv=None) -> dict:
             xs.append(None if z is None else rmap.x0 + rmap.N @ z)
         return xs
 
-    variants = [("jax", jnp.float64)] + ([("jax_f32", jnp.float32)] if args.f32 else [])
+    chunks = args.chunks if args.chunks is not None else [jax_qp.CPU_CHUNK]
+    # (name, dtype, chunk): "jax" is the unchunked reference of the chunked columns
+    variants = ([("jax", jnp.float64, None)]
+                + [(f"jax_chunk{c}", jnp.float64, c) for c in chunks]
+                + ([("jax_f32", jnp.float32, "auto")] if args.f32 else []))
+    jax_names = [name for name, _, _ in variants]
     rows = []
     for B in args.batches:
         qnp = batch_np(B)
@@ -148,19 +173,19 @@ def main(argv=None) -> dict:
         Bp = min(B, args.piqp_max_batch)
         qnp_p = {f: qnp[f][:Bp] for f in FIELDS}
         compile_s = {}
-        for name, dt in variants:                  # compile + warm up
+        for name, dt, ch in variants:              # compile + warm up
             t0 = time.perf_counter()
-            jax.block_until_ready(jax_qp.solve_batch(qj, dtype=dt))
+            jax.block_until_ready(jax_qp.solve_batch(qj, dtype=dt, chunk=ch))
             compile_s[name] = time.perf_counter() - t0
         run_piqp_full(qnp_p)
         run_piqp_red(qnp_p)
-        times = {name: [] for name, _ in variants}
+        times = {name: [] for name in jax_names}
         times["piqp"], times["piqp_red"] = [], []
         res = {}
         for _ in range(args.reps):
-            for name, dt in variants:
+            for name, dt, ch in variants:
                 t0 = time.perf_counter()
-                res[name] = jax.block_until_ready(jax_qp.solve_batch(qj, dtype=dt))
+                res[name] = jax.block_until_ready(jax_qp.solve_batch(qj, dtype=dt, chunk=ch))
                 times[name].append((time.perf_counter() - t0) / B * 1e6)
             t0 = time.perf_counter()
             xs_full = run_piqp_full(qnp_p)
@@ -171,8 +196,17 @@ def main(argv=None) -> dict:
         row = {"batch": B, "piqp_timed_on": Bp}
         for name, ts in times.items():
             row[f"{name}_us_per_qp"] = float(np.median(ts))
-        for name, _ in variants:
+        x_ref = np.asarray(res["jax"].x)
+        for name in jax_names:
             r = res[name]
+            if name.startswith("jax_chunk"):
+                xc = np.asarray(r.x)
+                same_nan = bool(np.array_equal(np.isnan(xc), np.isnan(x_ref)))
+                fin = ~np.isnan(x_ref)
+                row[f"{name}_max_abs_dx_vs_jax"] = (
+                    float(np.abs(xc[fin] - x_ref[fin]).max(initial=0.0)) if same_nan else None)
+                row[f"{name}_bit_identical_to_jax"] = bool(np.array_equal(xc, x_ref,
+                                                                          equal_nan=True))
             x = np.asarray(r.x[:Bp], np.float64)
             dx = []
             for i, xp in enumerate(xs_full):
@@ -182,14 +216,19 @@ def main(argv=None) -> dict:
             row[f"{name}_solved"] = int(np.sum(np.asarray(r.status) == 0))
             row[f"{name}_max_iterations"] = int(np.max(r.iterations))
             row[f"{name}_compile_s"] = compile_s[name]
-        row["speedup_vs_piqp"] = row["piqp_us_per_qp"] / row["jax_us_per_qp"]
-        row["speedup_vs_piqp_red"] = row["piqp_red_us_per_qp"] / row["jax_us_per_qp"]
+        for name in jax_names:                     # > 1: the JAX solver is faster
+            sfx = "" if name == "jax" else name[3:]
+            row[f"speedup{sfx}_vs_piqp"] = row["piqp_us_per_qp"] / row[f"{name}_us_per_qp"]
+            row[f"speedup{sfx}_vs_piqp_red"] = (row["piqp_red_us_per_qp"]
+                                                / row[f"{name}_us_per_qp"])
         rows.append(row)
-        print(f"B={B:5d}  jax {row['jax_us_per_qp']:9.1f} us/QP"
-              + (f"  jax_f32 {row['jax_f32_us_per_qp']:9.1f}" if args.f32 else "")
-              + f"  | piqp {row['piqp_us_per_qp']:7.1f}  piqp_red {row['piqp_red_us_per_qp']:7.1f}"
-              f"  | speed-up x{row['speedup_vs_piqp']:.2f} (full), x{row['speedup_vs_piqp_red']:.2f}"
-              f" (reduced)  max|dx|/|x| {row['jax_max_rel_dx_vs_piqp']:.1e}", flush=True)
+        if len(rows) == 1:
+            print("us per QP (median of %d)   " % args.reps
+                  + "".join(f"{n:>14s}" for n in jax_names + ["piqp", "piqp_red"])
+                  + "   max|dx|/|x| vs piqp (jax)", flush=True)
+        print(f"B={B:5d}                    "
+              + "".join(f"{row[f'{n}_us_per_qp']:14.1f}" for n in jax_names + ["piqp", "piqp_red"])
+              + f"   {row['jax_max_rel_dx_vs_piqp'] or float('nan'):.1e}", flush=True)
 
     out = {
         "bench": "jax_qp", "source": source, "reps": args.reps, "statistic": "median",
@@ -197,6 +236,9 @@ def main(argv=None) -> dict:
         "jax": jax.__version__, "piqp": piqp.__version__, "backend": jax.default_backend(),
         "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
         "openblas_threads": args.blas_threads, "loadavg_1min": os.getloadavg()[0],
+        "cpu_affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+        else None,
+        "chunks": chunks, "default_chunk": jax_qp.default_chunk(),
         "rows": rows,
     }
     if args.json:

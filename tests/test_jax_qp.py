@@ -23,7 +23,7 @@ within 60 iterations (the arms runs without barrier), PIQP at eps_abs 1e-10, eps
 QPs (the internal-force directions of lambda cost only the small Gamma), too loose for the
 1e-6 agreement checked here.
 
-Runs in ~1 minute on a 2-core CPU (five XLA compiles of ~8 s each dominate).
+Runs in ~1 minute on a 2-core CPU (its XLA compiles, ~8 s each, dominate).
 """
 
 from __future__ import annotations
@@ -249,6 +249,36 @@ def test_user_level_jit_vmap_matches_solve_batch(data, jax_result):
     np.testing.assert_allclose(r.x[ok], ref.x[idx][ok], rtol=0,
                                atol=1e-9 * np.nanmax(np.abs(ref.x)))
     assert np.isnan(r.x[~ok]).all()
+
+
+# ---------------------------------------------------------------- chunked batches
+
+def test_chunked_batch_matches_unchunked(data):
+    """``solve_batch(chunk=8)`` on 20 QPs (3 chunks of 7, padded with a copy of the last
+    QP) gives the unchunked solve's results: the padding is stripped and no QP's result
+    depends on the other QPs of its chunk. A soft- and a hard-infeasible QP sit in the
+    second and third chunks, so the first chunk skips the relaxed solve that the others
+    run (the batch-level cond is per chunk)."""
+    nrec = data["nrec"]
+    rec = np.linspace(0, nrec - 1, 18).astype(int)
+    idx = np.r_[rec[:10], nrec, rec[10:], nrec + N_INFEAS]       # soft at 10, hard at 19
+    qps = QP(*(jnp.asarray(data["qps"][f][idx]) for f in FIELDS))
+    ref = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, chunk=None))
+    r = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, chunk=8))
+    assert r.x.shape == ref.x.shape == (20, data["qps"]["P"].shape[1])
+    assert r.fallback[10] == jax_qp.FALLBACK_RELAXED and r.fallback[19] == jax_qp.FALLBACK_FAILED
+    for name, a, b in zip(jax_qp.Result._fields, r, ref):
+        if np.issubdtype(a.dtype, np.floating):
+            scale = max(1.0, np.nanmax(np.abs(b), initial=0.0))
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * scale, equal_nan=True,
+                                       err_msg=name)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=name)
+    # a chunk at least the batch is the unchunked function itself (no second compile)
+    assert jax_qp._resolve_chunk(20, 20) is None and jax_qp._resolve_chunk(8, 20) == 8
+    assert jax_qp._chunk_layout(20, 8) == (3, 7) and jax_qp._chunk_layout(1024, 64) == (16, 64)
+    with pytest.raises(ValueError, match="chunk"):
+        jax_qp.solve_batch(qps, chunk=0)
 
 
 # ---------------------------------------------------------------- float32

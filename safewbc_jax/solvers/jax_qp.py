@@ -76,7 +76,11 @@ initial point only, not for its iterations.
 
 Batches: every function here works on one QP and is written for ``jax.vmap``; a vmapped
 ``lax.while_loop`` runs until every instance of the batch has stopped, the stopped ones
-frozen. ``solve_batch`` / ``solve_generic_batch`` are the jitted, vmapped versions.
+frozen. ``solve_batch`` / ``solve_generic_batch`` are the jitted, vmapped versions. On a
+CPU they solve a large batch in chunks (``chunk``, 64 QPs by default): the batch is cut
+into equal chunks of at most that size (padded with copies of its last QP) and a
+``lax.map`` runs the vmapped solver over one chunk after the other inside the same jitted
+call, because one vmap over the whole batch is slower per QP there (see ``solve_batch``).
 
 dtype: float64 by default; ``dtype=jnp.float32`` casts the QP and uses float32 settings
 (``Settings.for_dtype``: eps_abs 1e-5, looser acceptance 1e-3) for accelerators; expect
@@ -1051,27 +1055,120 @@ def _batch_impl(qps: QP, reducer, st: Settings) -> Result:
         jax.vmap(lambda qp, n_: _finish(qp, n_, None))(qps, nom)
 
 
+def _chunk_layout(batch: int, chunk: int) -> tuple[int, int]:
+    """(n_chunks, size): the fewest chunks of at most ``chunk`` QPs, all of one size, that
+    hold ``batch`` QPs (size * n_chunks - batch < n_chunks QPs of padding)."""
+    n_chunks = -(-batch // chunk)
+    return n_chunks, -(-batch // n_chunks)
+
+
+def _chunked(impl, chunk: int | None):
+    """``impl`` (a function of a batch) applied to a batch in chunks of at most ``chunk``
+    QPs, one after the other (``lax.map`` over the batch reshaped to (n_chunks, size,
+    ...)).
+
+    The batch is cut into the fewest chunks of at most ``chunk`` QPs, all of the same size
+    (``_chunk_layout``: 1000 QPs with chunk 64 make 16 chunks of 63), and padded to
+    n_chunks * size with copies of its last QP, so there is one compiled chunk body and no
+    remainder path, and the padding is less than one QP per chunk (padding to a multiple
+    of ``chunk`` itself would solve up to chunk - 1 extra QPs: 65 QPs would cost 128).
+    Copies of a real QP, not zeros: a zero QP would fail the factorisations and send its
+    chunk through the relaxed solve. The padding is stripped from the results. Each chunk
+    runs ``impl`` whole, its batch-level ``lax.cond`` included: only the chunks with a QP
+    that needs the relaxed solve pay for it. A QP's result does not depend on the other
+    QPs of its batch (a vmapped loop only freezes the instances that have stopped), so
+    the chunked and the unchunked solve agree (``tests/test_jax_qp.py`` checks it)."""
+    if chunk is None:
+        return impl
+
+    def run(qps):
+        B = qps.P.shape[0]
+        if B <= chunk:
+            return impl(qps)
+        n_chunks, size = _chunk_layout(B, chunk)
+        pad = n_chunks * size - B
+
+        def split(a):
+            if pad:
+                a = jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])])
+            return a.reshape((n_chunks, size) + a.shape[1:])
+
+        out = lax.map(impl, jax.tree_util.tree_map(split, qps))
+        return jax.tree_util.tree_map(lambda y: y.reshape((n_chunks * size,) + y.shape[2:])[:B],
+                                      out)
+    return run
+
+
 @functools.lru_cache(maxsize=64)
-def _batched(kind: str, nv: int, nu: int, bounded: tuple, dtype, settings, pbd=False):
+def _batched(kind: str, nv: int, nu: int, bounded: tuple, dtype, settings, pbd=False,
+             chunk=None):
     if kind == "controller":
         b = np.asarray(bounded, int)
         reducer = lambda qp: _reduce_controller(qp, nv, nu, b, pbd)  # noqa: E731
     else:
         reducer = _reduce_generic
-    return jax.jit(lambda qps: _batch_impl(_cast(qps, dtype), reducer, settings))
+    impl = _chunked(lambda qps: _batch_impl(qps, reducer, settings), chunk)
+    return jax.jit(lambda qps: impl(_cast(qps, dtype)))
+
+
+CPU_CHUNK = 64
+"""Default ``chunk`` of the batched solvers on the CPU backend (QPs per chunk)."""
+
+
+def default_chunk(backend: str | None = None) -> int | None:
+    """The batched solvers' default ``chunk``: ``CPU_CHUNK`` on the CPU backend, None (one
+    vmap over the whole batch) on an accelerator, whose parallelism wants the largest
+    batch. ``backend`` None: ``jax.default_backend()``."""
+    backend = jax.default_backend() if backend is None else backend
+    return CPU_CHUNK if backend == "cpu" else None
+
+
+def _resolve_chunk(chunk, batch: int):
+    """The chunk a batch of ``batch`` QPs is solved with: "auto" -> ``default_chunk()``;
+    None, and any chunk >= the batch, -> None (one vmap: the same compiled function,
+    whatever the chunk asked for)."""
+    if isinstance(chunk, str):
+        if chunk != "auto":
+            raise ValueError(f"chunk must be a positive int, None or 'auto', got {chunk!r}")
+        chunk = default_chunk()
+    if chunk is None:
+        return None
+    if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
+        raise ValueError(f"chunk must be a positive int, None or 'auto', got {chunk!r}")
+    return None if chunk >= batch else int(chunk)
 
 
 def solve_batch(qps: QP, *, nv: int = 36, nu: int = 20, bounded=None, dtype=None,
-                settings: Settings | None = None, p_blockdiag: bool | None = None) -> Result:
+                settings: Settings | None = None, p_blockdiag: bool | None = None,
+                chunk: int | str | None = "auto") -> Result:
     """``solve`` over a leading batch dimension of every field, jitted (compiled once per
-    shape, dtype, settings and structure flags). ``p_blockdiag`` None: checked on the
-    data (``p_block_diagonal``) when it is concrete, else False."""
+    shape, dtype, settings, structure flags and chunk). ``p_blockdiag`` None: checked on
+    the data (``p_block_diagonal``) when it is concrete, else False.
+
+    ``chunk``: solve the batch at most ``chunk`` QPs at a time, the chunks one after the
+    other in the same jitted call (``_chunked``: equal chunks, padded by copies of the last
+    QP; results equal to the unchunked solve's); None: one vmap over the whole batch;
+    "auto" (default): ``default_chunk()``, ``CPU_CHUNK`` = 64 on a CPU, None on an
+    accelerator. A batch of at most ``chunk`` QPs is one vmap (the same compiled function
+    as chunk None).
+
+    Why: on a CPU one vmap over a large batch costs more per QP. Measured with
+    ``benchmarks/jax_qp_bench.py`` on the recorded controller QPs (float64, one core of a
+    2-core x86-64 machine shared with other work, jaxlib 0.10.2, medians of 9): 1,024 QPs
+    took 378 us per QP as one vmap, 164 / 173 / 205 us in chunks of 64 / 128 / 256; 256 QPs
+    217 us as one vmap, 196 us in chunks of 64. Two causes: the same 256 QPs repeated to
+    1,024 took 234 us per QP as one vmap against 158 us for the 256 (another run: a larger
+    vmap is slower per QP on identical work), and a vmapped loop runs until the slowest QP of its
+    batch stops (up to 22 interior-point iterations in the first 1,024 recorded QPs, 8 in
+    the first 256), while a chunk stops at its own slowest. Chunks of 32 to 256 were within
+    ~30% of each other at batch 1,024 in four runs; 64 was the fastest in three of them
+    (in the first, 128 and 32 were ~15% faster), 256 never."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.asarray(qps.P).dtype
     b = tuple(int(i) for i in (np.zeros(0, int) if bounded is None else np.asarray(bounded)))
     if p_blockdiag is None:
         p_blockdiag = _concrete(qps.P) and p_block_diagonal(qps.P, nv, nu)
     return _batched("controller", nv, nu, b, dtype, _settings(dtype, settings),
-                    bool(p_blockdiag))(qps)
+                    bool(p_blockdiag), _resolve_chunk(chunk, qps.P.shape[0]))(qps)
 
 
 _OPENBLAS_API = (("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
@@ -1135,10 +1232,13 @@ def p_block_diagonal(P, nv: int = 36, nu: int = 20) -> bool:
     return not any(np.any(P[..., s[i], s[j]]) for i in range(3) for j in range(3) if i != j)
 
 
-def solve_generic_batch(qps: QP, *, dtype=None, settings: Settings | None = None) -> Result:
-    """``solve_generic`` over a leading batch dimension, jitted."""
+def solve_generic_batch(qps: QP, *, dtype=None, settings: Settings | None = None,
+                        chunk: int | str | None = "auto") -> Result:
+    """``solve_generic`` over a leading batch dimension, jitted; ``chunk`` as in
+    ``solve_batch``."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.asarray(qps.P).dtype
-    return _batched("generic", 0, 0, (), dtype, _settings(dtype, settings))(qps)
+    return _batched("generic", 0, 0, (), dtype, _settings(dtype, settings), False,
+                    _resolve_chunk(chunk, qps.P.shape[0]))(qps)
 
 
 def has_controller_structure(qp: QP, nv: int = 36, nu: int = 20) -> bool:
@@ -1157,5 +1257,6 @@ def has_controller_structure(qp: QP, nv: int = 36, nu: int = 20) -> bool:
 
 
 __all__ = ["Settings", "Result", "solve", "solve_batch", "solve_generic",
-           "solve_generic_batch", "has_controller_structure", "p_block_diagonal", "blas_threads", "FALLBACK_NONE",
-           "FALLBACK_RELAXED", "FALLBACK_FAILED", "FALLBACK_NAMES"]
+           "solve_generic_batch", "default_chunk", "CPU_CHUNK", "has_controller_structure",
+           "p_block_diagonal", "blas_threads", "FALLBACK_NONE", "FALLBACK_RELAXED",
+           "FALLBACK_FAILED", "FALLBACK_NAMES"]
