@@ -90,4 +90,4 @@ def first_pole_bound(etas: np.ndarray) -> float:
     h, hd = e[:, 0], e[:, 1] if e.shape[1] > 1 else np.zeros(len(e))
     with np.errstate(divide="ignore", invalid="ignore"):
         b = np.where(h > 0, np.maximum(0.0, -hd / h), np.where(hd >= 0, 0.0, np.inf))
-    return float(np.max(b)) if b.size else 0.0
+    return float(np.max(b)) + 0.0 if b.size else 0.0   # + 0.0: no "-0" in messages

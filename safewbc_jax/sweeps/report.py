@@ -153,14 +153,17 @@ def poles_figure(man, cols, oc, path) -> bool:
                 for j in range(len(xb)):
                     if n[i, j] == 0:
                         continue
+                    falls = st["falls"].reshape(n.shape)[i, j]
                     txt = (f"{val[i, j]:.1f}" if key == "hmin" else
                            f"{st['violations'].reshape(n.shape)[i, j]}/{n[i, j]}")
+                    if falls and key != "hmin":   # a fall is not a violation: shown apart
+                        txt += f"\n{falls} fell"
                     axis.text(j, i, txt, ha="center", va="center", fontsize=7)
             axis.set_xticks(range(len(xb)), [f"{v:.3g}" for v in xb], rotation=45)
             axis.set_yticks(range(len(xa)), [f"{v:.3g}" for v in xa])
             axis.set(xlabel=b, ylabel=a)
         ax[0].set_title(f"worst-case min h_{t} over rollouts (mm)")
-        ax[1].set_title("violation rate (count / rollouts)")
+        ax[1].set_title("violation rate (count / rollouts; falls noted)")
     fig.suptitle(f"{man['scenario']}: barrier {t}, violation when min h < -{1e3 * float(man.get('violation_tol', 0)):g} mm")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
