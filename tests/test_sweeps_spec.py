@@ -38,10 +38,15 @@ def spec_from(tmp_path, text, name="s.toml"):
 
 
 def test_shipped_specs_are_valid():
-    for name in ("kalpha_poles", "push_forces", "gains"):
+    targets = {"kalpha_poles": "left_fist", "gains": "left_fist", "push_forces": "swing_foot",
+               "kalpha_poles_walk": "swing_foot"}
+    for name, target in targets.items():
         s = load_spec(ROOT / "sweeps" / f"{name}.toml")
         assert s.n_rollouts >= 50
-        assert s.target == "left_fist"
+        assert s.target == target
+    s = load_spec(ROOT / "sweeps" / "push_forces.toml")   # walking with pushes
+    assert s.scenario == "push" and s.n_settings == 80
+    assert [a.name for a in s.axes] == ["push.magnitude", "push.direction", "push.at"]
     s = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
     assert [a.name for a in s.axes] == ["poles.left_fist.p1", "poles.left_fist.p2"]
     assert s.axes[0].values[0] == pytest.approx(1.0) and s.axes[0].values[-1] == pytest.approx(64.0)
