@@ -36,6 +36,28 @@ def loop_site_pairs(ms) -> tuple[np.ndarray, np.ndarray]:
     return np.array(tips, int), np.array(anchors, int)
 
 
+def foot_contact_ids(ms) -> dict:
+    """Ids of what the walking gait and the leg-collision metric read from the simulator:
+    ``sole_sites`` and ``sole_geoms`` (left, right), ``floor`` (geom), ``legs`` (2, k):
+    the collision geoms of the left and of the right leg."""
+    legs = [[g for g in range(ms.ngeom) if ms.geom(g).name.startswith(side)
+             and ms.geom(g).name.endswith("-collision")] for side in ("left", "right")]
+    if len(legs[0]) != len(legs[1]):
+        raise ValueError("the two legs have different numbers of collision geoms")
+    return {"sole_sites": np.array([ms.site(f"{s}-sole").id for s in ("left", "right")]),
+            "sole_geoms": np.array([ms.geom(f"{s}-sole").id for s in ("left", "right")]),
+            "floor": ms.geom("floor").id, "legs": np.array(legs, int)}
+
+
+def control_substeps(ms, control_dt: float) -> int | None:
+    """Simulation steps per control step, or None when ``control_dt`` is not a positive
+    multiple of the simulation step."""
+    n_sub = int(round(control_dt / ms.opt.timestep))
+    if n_sub < 1 or abs(n_sub * ms.opt.timestep - control_dt) > 1e-12:
+        return None
+    return n_sub
+
+
 def sim_loop_residual(ms, d, pairs=None) -> float:
     """Largest distance (m) between a rod's tip and the anchor it should meet; ``pairs``
     from ``loop_site_pairs`` (looked up by name when not given)."""

@@ -307,10 +307,11 @@ class GaitState(NamedTuple):
     missed: object
 
     @staticmethod
-    def standing(xp=np):
-        z3 = xp.zeros(3)
-        return GaitState(xp.asarray(BOTH), xp.asarray(0.0), z3, z3, xp.asarray(0),
-                         xp.asarray(0))
+    def standing(xp=np, dtype=np.float64):
+        """Before walking: both feet on the floor, no step taken."""
+        z3 = xp.zeros(3, dtype)
+        return GaitState(xp.asarray(BOTH, dtype), xp.zeros((), dtype), z3, z3,
+                         xp.zeros((), np.int32), xp.zeros((), np.int32))
 
 
 def gait_step(g: GaitState, tau, dt, sole_left, sole_right, swing_force, weight, xp=np):
@@ -354,6 +355,14 @@ def gait_domain(g: GaitState, heading, v_des, step_width, xp=np):
     return {"stance": g.stance, "in_contact": ic, "tau_step": g.tau_step,
             "stance0": g.stance0, "swing0": g.swing0, "heading": heading, "v_des": v_des,
             "step_width": step_width}
+
+
+def walking_start(model, q, start, blend) -> dict:
+    """What ``desired`` needs in the run's start data beyond ``scenarios.start_state``
+    (the run's settle time aside): the standing blend's length and how far the left sole
+    is from the stance origin, laterally (the CoM goes over its inside edge)."""
+    pl = robot.frame_pose(model, q, "left-sole")[0]
+    return {"blend": jnp.asarray(blend), "half_width": pl[1] - start["origin"][1]}
 
 
 def first_step_domain(model, q, v_des=0.2):

@@ -197,8 +197,7 @@ def test_gait_step_in_jax_follows_the_host_gait():
         return st, jnp.concatenate([jnp.stack([st.stance, st.tau_step]), st.stance0, st.swing0,
                                     jnp.stack([st.steps, st.missed]).astype(float)])
 
-    st0 = walking.GaitState(jnp.asarray(BOTH), jnp.asarray(0.0), jnp.zeros(3), jnp.zeros(3),
-                            jnp.asarray(0), jnp.asarray(0))
+    st0 = walking.GaitState.standing(jnp)
     _, dev = jax.jit(lambda: jax.lax.scan(body, st0, (tau, force, soles)))()
     host = np.array(host, float)
     np.testing.assert_array_equal(np.asarray(dev), host)

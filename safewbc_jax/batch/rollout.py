@@ -37,9 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import barriers, contacts, controller, metrics, robot, walking
+from safewbc_jax import barriers, contacts, controller, metrics, walking
 from safewbc_jax.mjx_import import import_mjx
-from safewbc_jax.modelinfo import loop_site_pairs
+from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario, start_state
 from safewbc_jax.sim.mujoco_loop import FALL_HEIGHT, load_at_stand
@@ -175,8 +175,8 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
     mjx = import_mjx()
     ms, mc, model, sm, d = load_at_stand()
     sc = get_scenario(cfg.scenario, cfg.barrier)
-    n_sub = int(round(cfg.control_dt / ms.opt.timestep))
-    if n_sub < 1 or abs(n_sub * ms.opt.timestep - cfg.control_dt) > 1e-12:
+    n_sub = control_substeps(ms, cfg.control_dt)
+    if n_sub is None:
         raise BatchError(f"BatchConfig.control_dt = {cfg.control_dt}: must be a positive "
                          f"multiple of the simulation step {ms.opt.timestep}")
 
@@ -185,9 +185,7 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
     start["y0"] = controller.output_start_values(model, sc, jnp.asarray(q0))
     is_walking = cfg.scenario in WALKING
     if is_walking:   # as the deployment loop; "settle" is set per run (run-time value)
-        start["blend"] = jnp.asarray(sc.blend)
-        start["half_width"] = robot.frame_pose(model, jnp.asarray(q0), "left-sole")[0][1] \
-            - start["origin"][1]
+        start.update(walking.walking_start(model, jnp.asarray(q0), start, sc.blend))
 
     mx = mjx.put_model(ms)
     dx = mjx.put_data(ms, d)
@@ -197,11 +195,8 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
     dx = jax.tree_util.tree_map(lambda a, s: jnp.asarray(a, s.dtype), dx, shape)
 
     tips, anchors = loop_site_pairs(ms)
-    soles = np.array([ms.site(f"{s}-sole").id for s in ("left", "right")])
-    legs = [[g for g in range(ms.ngeom) if ms.geom(g).name.startswith(side)
-             and ms.geom(g).name.endswith("-collision")] for side in ("left", "right")]
-    if len(legs[0]) != len(legs[1]):
-        raise BatchError("the two legs have different numbers of collision geoms")
+    ids = foot_contact_ids(ms)
+    soles = ids["sole_sites"]
     return Plant(
         cfg=cfg, scenario=sc, model=model, mjx_model=mx, data0=dx,
         qpos_idx=np.asarray(sm.qpos_idx), qvel_idx=np.asarray(sm.qvel_idx),
@@ -211,9 +206,8 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
         sole0_xy=d.site_xpos[soles, :2].copy(),
         start=start, q0=q0, v0=v0, n_sub=n_sub, sim_dt=float(ms.opt.timestep), nv_sim=ms.nv,
         walking=is_walking, weight=float(-model.gravity[2] * model.total_mass),
-        floor_geom=ms.geom("floor").id,
-        sole_geoms=np.array([ms.geom(f"{s}-sole").id for s in ("left", "right")]),
-        leg_geoms=np.array(legs), contact_rows=_contact_rows(mjx, ms))
+        floor_geom=ids["floor"], sole_geoms=ids["sole_geoms"], leg_geoms=ids["legs"],
+        contact_rows=_contact_rows(mjx, ms))
 
 
 # ----------------------------------------------------------------------------- validation
@@ -428,9 +422,11 @@ def _fallen(pl: Plant, dx) -> jax.Array:
 
 def _pair(g, a, b):
     """(ncon,) True where a contact's geom pair is one of ``a`` with one of ``b``."""
-    ina = lambda x: jnp.any(x[:, None] == jnp.atleast_1d(a)[None], axis=1)  # noqa: E731
-    inb = lambda x: jnp.any(x[:, None] == jnp.atleast_1d(b)[None], axis=1)  # noqa: E731
-    return (ina(g[:, 0]) & inb(g[:, 1])) | (inb(g[:, 0]) & ina(g[:, 1]))
+    def member(x, ids):
+        return jnp.any(x[:, None] == jnp.atleast_1d(ids)[None], axis=1)
+
+    return ((member(g[:, 0], a) & member(g[:, 1], b))
+            | (member(g[:, 0], b) & member(g[:, 1], a)))
 
 
 def sole_forces_and_leg_contact(pl: Plant, dx):
@@ -515,9 +511,7 @@ def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, pertu
     run = Run(dataclasses.replace(pl.scenario, settle=settle), n_steps, speed, k_half)
     dx = pl.data0.replace(qvel=pl.data0.qvel + perturb_v)
     dtype = dx.qvel.dtype
-    gait = walking.GaitState(jnp.asarray(walking.BOTH, dtype), jnp.zeros((), dtype),
-                             jnp.zeros(3, dtype), jnp.zeros(3, dtype),
-                             jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+    gait = walking.GaitState.standing(jnp, dtype)
     carry = (dx, jnp.zeros(pl.model.nu, dtype), _acc0(pl, dtype), gait)
     step = functools.partial(_step, pl, run, params, push)
     if not decimate:

@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax import barriers, contacts, controller, paths, robot, statemap
-from safewbc_jax.modelinfo import loop_site_pairs, sim_loop_residual
+from safewbc_jax.modelinfo import (control_substeps, foot_contact_ids, loop_site_pairs,
+                                   sim_loop_residual)
 from safewbc_jax.packing import Packer
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.scenarios import Scenario, start_state
@@ -180,8 +181,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     import mujoco
 
     ms, mc, model, sm, d = load_at_stand()
-    n_sub = int(round(cfg.control_dt / ms.opt.timestep))
-    if n_sub < 1 or abs(n_sub * ms.opt.timestep - cfg.control_dt) > 1e-12:
+    n_sub = control_substeps(ms, cfg.control_dt)
+    if n_sub is None:
         raise ValueError(f"control_dt {cfg.control_dt} must be a positive multiple of the "
                          f"simulation step {ms.opt.timestep}")
     duration = scenario.duration if cfg.duration is None else cfg.duration
@@ -200,25 +201,22 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     walking = scenario.desired_fn is not None
     gait = rigid_fn = None
     if walking:
-        from safewbc_jax.walking import Gait
+        from safewbc_jax.walking import Gait, walking_start
+        from safewbc_jax.walking import diagnostics as walking_diag
         from safewbc_jax.walking import rigid_spring_velocity as walking_rigid
 
-        start["settle"], start["blend"] = jnp.asarray(settle), jnp.asarray(scenario.blend)
-        pl, _ = robot.frame_pose(model, q0, "left-sole")
-        start["half_width"] = pl[1] - start["origin"][1]
+        start.update(walking_start(model, q0, start, scenario.blend), settle=jnp.asarray(settle))
         gait = Gait(v_des=cfg.speed)
-        from safewbc_jax.walking import diagnostics as walking_diag
-
         diag_fn = jax.jit(partial(walking_diag, model))
         rigid_fn = jax.jit(partial(walking_rigid, model)) if cfg.rigid_swing_leg else None
-    sole_geoms = {s: ms.geom(f"{s}-sole").id for s in ("left", "right")}
-    floor_geom = ms.geom("floor").id
-    leg_geoms = {s: {g for g in range(ms.ngeom) if ms.geom(g).name.startswith(s)
-                     and ms.geom(g).name.endswith("-collision")} for s in ("left", "right")}
+    ids = foot_contact_ids(ms)
+    sole_geoms = dict(zip(("left", "right"), ids["sole_geoms"].tolist()))
+    floor_geom = ids["floor"]
+    leg_geoms = {s: set(g.tolist()) for s, g in zip(("left", "right"), ids["legs"])}
     ctl = CompiledController(model, scenario)
     in_contact = jnp.asarray(scenario.in_contact)
     ctrl_lo, ctrl_hi = ms.actuator_ctrlrange[:, 0], ms.actuator_ctrlrange[:, 1]
-    sole_ids = [ms.site(f"{s}-sole").id for s in ("left", "right")]
+    sole_ids = ids["sole_sites"].tolist()
     sole0 = np.array([d.site_xpos[i][:2] for i in sole_ids])
     base_id = ms.body("base").id
     loop_pairs = loop_site_pairs(ms)
@@ -282,7 +280,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         for _ in range(n_sub):
             mujoco.mj_step(ms, d)
         contacts_now = _floor_and_leg_contacts(ms, d, sole_geoms, floor_geom, leg_geoms)
-        soles = {s: d.site_xpos[ms.site(f"{s}-sole").id].copy() for s in ("left", "right")}
+        soles = {s: d.site_xpos[i].copy() for s, i in zip(("left", "right"), sole_ids)}
         log["leg_contact"].append(contacts_now["legs"])
         log["clearance"].append(float(soles["left"][1] - soles["right"][1]))
         if walking:

@@ -1082,9 +1082,7 @@ def _chunked(impl, chunk: int | None):
         return impl
 
     def run(qps):
-        B = qps.P.shape[0]
-        if B <= chunk:
-            return impl(qps)
+        B = qps.P.shape[0]     # > chunk: _resolve_chunk makes smaller batches one vmap
         n_chunks, size = _chunk_layout(B, chunk)
         pad = n_chunks * size - B
 
