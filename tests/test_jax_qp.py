@@ -17,11 +17,18 @@ g0 + sum_j min(g_j lb_j, g_j ub_j) with g = G_i N, g0 = G_i x0; h_i is set below
     both must report INFEASIBLE and "failed" (JAX: x all NaN, to be ignored by the caller,
     who holds its last torque; PIQP path: x None).
 
-Reference solutions: PIQP at tight tolerances; on the QPs where those do not converge
-within 60 iterations (the arms runs without barrier), PIQP at eps_abs 1e-10, eps_rel
-1e-12. PIQP's defaults leave x up to ~5e-5 (relative) from the exact optimum on these
-QPs (the internal-force directions of lambda cost only the small Gamma), too loose for the
-1e-6 agreement checked here.
+Reference solutions: PIQP at tight tolerances (``TIGHT``: residuals 1e-12 absolute /
+1e-14 relative, and the duality gap as tight). On 332 of the 1,137 recorded QPs PIQP's
+duality-gap test never passes at those tolerances (0 of 332 with 200 iterations, with or
+without its preconditioner), while its primal and dual residuals do: there the reference
+is PIQP at the same residual tolerances with the gap test off (``TIGHT_NO_GAP``).
+Measured (``jax_qp.solve_batch`` against these references): max |X - X_piqp| / max(1,
+|X_piqp|) 2.1e-9 on the 805 tight QPs and 9.1e-9 on the 332 others. The looser fallback
+used before (eps_abs 1e-10, eps_rel 1e-12 with the gap test on) left one QP at 1.5e-6 and
+p99 1e-7: PIQP's defaults leave x up to ~5e-5 (relative) from the exact optimum on these
+QPs (the internal-force directions of lambda cost only the small Gamma), too loose for
+the 1e-6 agreement checked here. The KKT certificate test checks the JAX solution with
+no second solver at all.
 
 Runs in ~1 minute on a 2-core CPU (its XLA compiles, ~8 s each, dominate).
 """
@@ -35,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from safewbc_jax import chunking
 from safewbc_jax.qp_types import QP
 from safewbc_jax.solvers import (INFEASIBLE, MAX_ITER, SOLVED, SolveStatus, jax_qp, reduce,
                                  solve_qp)
@@ -45,6 +53,7 @@ FIXTURE = Path(__file__).parent / "data" / "controller_qps.npz"
 NV, NU = 36, 20
 TIGHT = {"eps_abs": 1e-12, "eps_rel": 1e-14, "eps_duality_gap_abs": 1e-12,
          "eps_duality_gap_rel": 1e-14, "max_iter": 60}
+TIGHT_NO_GAP = {**TIGHT, "check_duality_gap": False}
 REF = {"eps_abs": 1e-10, "eps_rel": 1e-12}
 N_INFEAS = 6        # soft-infeasible and hard-infeasible instances each
 
@@ -120,15 +129,15 @@ def jax_result(data):
 
 @pytest.fixture(scope="module")
 def piqp_ref(data):
-    """PIQP's solution of every recorded QP (tight, else REF tolerances), no fallback, and
-    whether the tight tolerances were reached."""
+    """PIQP's solution of every recorded QP (TIGHT, else TIGHT_NO_GAP), no fallback, and
+    whether TIGHT was reached."""
     xs, sts, tight = [], [], []
     for i in range(data["nrec"]):
         qp = _take(data["qps"], i)
         x, st = solve_qp_piqp(qp, **TIGHT)
         tight.append(st == SolveStatus.SOLVED)
         if st != SolveStatus.SOLVED:
-            x, st = solve_qp_piqp(qp, **REF)
+            x, st = solve_qp_piqp(qp, **TIGHT_NO_GAP)
         xs.append(x)
         sts.append(st)
     return xs, sts, np.array(tight)
@@ -148,19 +157,9 @@ def test_recorded_qps_agree_with_piqp(data, jax_result, piqp_ref):
     assert r.polished[:nrec].all()                   # exact active-set KKT points
     err = np.array([np.abs(r.x[i] - xs[i]).max() / max(1.0, np.abs(xs[i]).max())
                     for i in range(nrec)])
-    assert err[tight].max() <= 1e-6, f"max relative |X - X_piqp| = {err[tight].max():.2e}"
-    # PIQP stops short of the tight tolerances on ~30% of these QPs (more iterations and
-    # iterative refinement do not help) and is taken at REF there. On a handful of those
-    # its point keeps a stationarity residual ~1e-10 along the internal-force directions
-    # of lambda, which cost only Gamma_lambda = 1e-7, and X differs from the JAX solution
-    # by up to ~2e-6 of max |X| (~1e-3 N of 500 N). There the KKT certificate must show
-    # the JAX point to be the more exact one (its residual is ~1e-14).
-    off = np.flatnonzero(err > 1e-6)
-    assert off.size <= 0.01 * nrec and err.max() <= 1e-5, (off, err.max())
-    for i in off:
-        assert not tight[i]
-        assert _stationarity(_take(data["qps"], i), r.x[i]) <= \
-            0.1 * _stationarity(_take(data["qps"], i), xs[i]), i
+    # measured 2.1e-9 (TIGHT) and 9.1e-9 (TIGHT_NO_GAP): the issue's bound, on every QP
+    assert err.max() <= 1e-6, f"max relative |X - X_piqp| = {err.max():.2e} at {err.argmax()}"
+    assert tight.sum() >= 0.5 * nrec           # the gap test is off on a minority only
     # residuals of the returned X in the full (78-variable) QP, absolute
     assert r.eq_residual[:nrec].max() <= 1e-8
     assert r.ineq_violation[:nrec].max() <= 1e-8
@@ -186,11 +185,6 @@ def _kkt(qp: QP, x):
     mult, *_ = np.linalg.lstsq(C.T, -grad, rcond=None)
     return np.abs(grad + C.T @ mult).max(), mult[eq.shape[0]:].min(initial=0.0), \
         1.0 + np.abs(grad).max()
-
-
-def _stationarity(qp: QP, x) -> float:
-    res, _, gscale = _kkt(qp, x)
-    return res / gscale
 
 
 def test_recorded_qps_kkt_certificate(data, jax_result):
@@ -276,7 +270,7 @@ def test_chunked_batch_matches_unchunked(data):
             np.testing.assert_array_equal(a, b, err_msg=name)
     # a chunk at least the batch is the unchunked function itself (no second compile)
     assert jax_qp._resolve_chunk(20, 20) is None and jax_qp._resolve_chunk(8, 20) == 8
-    assert jax_qp._chunk_layout(20, 8) == (3, 7) and jax_qp._chunk_layout(1024, 64) == (16, 64)
+    assert chunking.chunk_layout(20, 8) == (3, 7) and chunking.chunk_layout(1024, 64) == (16, 64)
     with pytest.raises(ValueError, match="chunk"):
         jax_qp.solve_batch(qps, chunk=0)
 

@@ -100,6 +100,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jax import lax
 
+from safewbc_jax.chunking import chunked, resolve_chunk
 from safewbc_jax.qp_types import QP
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN
 from safewbc_jax.solvers.status import INFEASIBLE, MAX_ITER, NUMERICAL, SOLVED
@@ -1055,48 +1056,6 @@ def _batch_impl(qps: QP, reducer, st: Settings) -> Result:
         jax.vmap(lambda qp, n_: _finish(qp, n_, None))(qps, nom)
 
 
-def _chunk_layout(batch: int, chunk: int) -> tuple[int, int]:
-    """(n_chunks, size): the fewest chunks of at most ``chunk`` QPs, all of one size, that
-    hold ``batch`` QPs (size * n_chunks - batch < n_chunks QPs of padding)."""
-    n_chunks = -(-batch // chunk)
-    return n_chunks, -(-batch // n_chunks)
-
-
-def _chunked(impl, chunk: int | None):
-    """``impl`` (a function of a batch) applied to a batch in chunks of at most ``chunk``
-    QPs, one after the other (``lax.map`` over the batch reshaped to (n_chunks, size,
-    ...)).
-
-    The batch is cut into the fewest chunks of at most ``chunk`` QPs, all of the same size
-    (``_chunk_layout``: 1000 QPs with chunk 64 make 16 chunks of 63), and padded to
-    n_chunks * size with copies of its last QP, so there is one compiled chunk body and no
-    remainder path, and the padding is less than one QP per chunk (padding to a multiple
-    of ``chunk`` itself would solve up to chunk - 1 extra QPs: 65 QPs would cost 128).
-    Copies of a real QP, not zeros: a zero QP would fail the factorisations and send its
-    chunk through the relaxed solve. The padding is stripped from the results. Each chunk
-    runs ``impl`` whole, its batch-level ``lax.cond`` included: only the chunks with a QP
-    that needs the relaxed solve pay for it. A QP's result does not depend on the other
-    QPs of its batch (a vmapped loop only freezes the instances that have stopped), so
-    the chunked and the unchunked solve agree (``tests/test_jax_qp.py`` checks it)."""
-    if chunk is None:
-        return impl
-
-    def run(qps):
-        B = qps.P.shape[0]     # > chunk: _resolve_chunk makes smaller batches one vmap
-        n_chunks, size = _chunk_layout(B, chunk)
-        pad = n_chunks * size - B
-
-        def split(a):
-            if pad:
-                a = jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])])
-            return a.reshape((n_chunks, size) + a.shape[1:])
-
-        out = lax.map(impl, jax.tree_util.tree_map(split, qps))
-        return jax.tree_util.tree_map(lambda y: y.reshape((n_chunks * size,) + y.shape[2:])[:B],
-                                      out)
-    return run
-
-
 @functools.lru_cache(maxsize=64)
 def _batched(kind: str, nv: int, nu: int, bounded: tuple, dtype, settings, pbd=False,
              chunk=None):
@@ -1105,7 +1064,7 @@ def _batched(kind: str, nv: int, nu: int, bounded: tuple, dtype, settings, pbd=F
         reducer = lambda qp: _reduce_controller(qp, nv, nu, b, pbd)  # noqa: E731
     else:
         reducer = _reduce_generic
-    impl = _chunked(lambda qps: _batch_impl(qps, reducer, settings), chunk)
+    impl = chunked(lambda qps: _batch_impl(qps, reducer, settings), chunk)
     return jax.jit(lambda qps: impl(_cast(qps, dtype)))
 
 
@@ -1122,18 +1081,9 @@ def default_chunk(backend: str | None = None) -> int | None:
 
 
 def _resolve_chunk(chunk, batch: int):
-    """The chunk a batch of ``batch`` QPs is solved with: "auto" -> ``default_chunk()``;
-    None, and any chunk >= the batch, -> None (one vmap: the same compiled function,
-    whatever the chunk asked for)."""
-    if isinstance(chunk, str):
-        if chunk != "auto":
-            raise ValueError(f"chunk must be a positive int, None or 'auto', got {chunk!r}")
-        chunk = default_chunk()
-    if chunk is None:
-        return None
-    if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
-        raise ValueError(f"chunk must be a positive int, None or 'auto', got {chunk!r}")
-    return None if chunk >= batch else int(chunk)
+    """The chunk a batch of ``batch`` QPs is solved with (``chunking.resolve_chunk`` with
+    ``default_chunk()`` for "auto")."""
+    return resolve_chunk(chunk, batch, default_chunk())
 
 
 def solve_batch(qps: QP, *, nv: int = 36, nu: int = 20, bounded=None, dtype=None,
@@ -1144,8 +1094,9 @@ def solve_batch(qps: QP, *, nv: int = 36, nu: int = 20, bounded=None, dtype=None
     the data (``p_block_diagonal``) when it is concrete, else False.
 
     ``chunk``: solve the batch at most ``chunk`` QPs at a time, the chunks one after the
-    other in the same jitted call (``_chunked``: equal chunks, padded by copies of the last
-    QP; results equal to the unchunked solve's); None: one vmap over the whole batch;
+    other in the same jitted call (``chunking.chunked``: equal chunks, padded by copies of
+    the last QP; results equal to the unchunked solve's; each chunk runs the batch-level
+    ``lax.cond`` of the relaxed solve on its own); None: one vmap over the whole batch;
     "auto" (default): ``default_chunk()``, ``CPU_CHUNK`` = 64 on a CPU, None on an
     accelerator. A batch of at most ``chunk`` QPs is one vmap (the same compiled function
     as chunk None).
