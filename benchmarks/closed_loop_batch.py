@@ -7,6 +7,8 @@ For each batch size B:
                 QP solver) + MJX physics, B rollouts of the arms scenario (barrier on), one
                 compiled call; timed on a second call (the step count is a run-time value,
                 so the first call's compile is reused). robot-steps/s = B * steps / time.
+                Once per --chunks value (rollouts per chunk; "none": one vmap over the
+                batch; default: run_batch's default, rollout.CPU_CHUNK on a CPU).
   physics       ``jit(scan(vmap(mjx.step)))`` of the same model and batch, --physics-steps
                 steps, timed on a second call.
 and once:
@@ -18,7 +20,7 @@ and once:
 Each figure is the median of --reps timed calls. The ratio closed_loop / single_loop is
 the batched path's speed per robot-step relative to one robot in real time.
 
-    python benchmarks/closed_loop_batch.py --batches 1 16 128 1024 [--json]
+    python benchmarks/closed_loop_batch.py --batches 1 16 128 1024 [--chunks 16 none] [--json]
 """
 
 from __future__ import annotations
@@ -75,19 +77,32 @@ def main(argv=None) -> dict:
                     help="seconds of motion after the 1 s settle (default 0.05)")
     ap.add_argument("--physics-steps", type=int, default=100)
     ap.add_argument("--reps", type=int, default=1)
+    ap.add_argument("--chunks", nargs="+", default=["auto"],
+                    help="rollouts per chunk of the batched path, each timed: positive "
+                         "ints, 'none' (one vmap), 'auto' (run_batch's default)")
+
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     if min(args.batches) < 1 or args.reps < 1 or args.duration <= 0:
         ap.error("--batches and --reps must be positive, --duration > 0")
+    chunks = []
+    for c in args.chunks:
+        if c in ("auto", "none"):
+            chunks.append(None if c == "none" else c)
+        elif c.isdigit() and int(c) > 0:
+            chunks.append(int(c))
+        else:
+            ap.error(f"--chunks: {c!r} is not a positive int, 'none' or 'auto'")
 
     import jax
     import numpy as np
 
-    from safewbc_jax.batch.rollout import BatchConfig, default_params, plant, run_batch
+    from safewbc_jax.batch.rollout import (BatchConfig, default_chunk, default_params, plant,
+                                           run_batch)
     from safewbc_jax.mjx_import import import_mjx
 
     mjx = import_mjx()
-    settle = 1.0
+    settle = 1.0      # the arms scenario's reference blend
     cfg = BatchConfig("arms", duration=args.duration, settle=settle)
     pl = plant(cfg)
     n_steps, _ = pl.schedule(cfg)
@@ -108,12 +123,6 @@ def main(argv=None) -> dict:
     rows = []
     for b in args.batches:
         params = default_params("arms", b)
-        t0 = time.perf_counter()
-        met, _ = run_batch(cfg, params)
-        first = time.perf_counter() - t0
-        t_run = median_time(lambda: run_batch(cfg, params)[0]["qp_solved"], args.reps)
-        cl = b * n_steps / t_run
-
         step = jax.vmap(mjx.step, in_axes=(None, 0))
         d0 = jax.tree_util.tree_map(lambda a: np.broadcast_to(a, (b,) + a.shape), pl.data0)
         phys = jax.jit(lambda d: jax.lax.scan(lambda c, _: (step(pl.mjx_model, c), None), d,
@@ -123,17 +132,31 @@ def main(argv=None) -> dict:
         phys_compile = time.perf_counter() - t0
         t_phys = median_time(lambda: phys(d0), args.reps)
         ph = b * args.physics_steps / t_phys
-        row = {"batch": b, "steps": n_steps, "first_call_s": round(first, 1),
-               "run_s": round(t_run, 2), "closed_loop_robot_steps_per_s": round(cl, 1),
-               "physics_steps_per_s": round(ph, 1), "physics_compile_s": round(phys_compile, 1),
-               "closed_loop_over_physics": round(cl / ph, 3),
-               "closed_loop_over_single_loop": round(cl / single, 3),
-               "fell": int(np.sum(met["fell"])), "qp_failed": int(np.sum(met["qp_failed"]))}
-        rows.append(row)
-        say(f"batch {b:5d}: closed loop {cl:9.1f} robot-steps/s, physics {ph:9.1f} steps/s, "
-            f"closed/physics {cl / ph:.3f}, closed/single-loop {cl / single:.2f} "
-            f"(first call {first:.0f} s, run {t_run:.1f} s, falls {row['fell']}, "
-            f"failed QPs {row['qp_failed']})")
+        seen = set()
+        for chunk in chunks:
+            used = default_chunk() if chunk == "auto" else chunk
+            used = None if used is None or used >= b else used
+            if used in seen:         # the same compiled function as one already timed
+                continue
+            seen.add(used)
+            t0 = time.perf_counter()
+            met, _ = run_batch(cfg, params, chunk=chunk)
+            first = time.perf_counter() - t0
+            t_run = median_time(lambda: run_batch(cfg, params, chunk=chunk)[0]["qp_solved"],
+                                args.reps)
+            cl = b * n_steps / t_run
+            row = {"batch": b, "chunk": used, "steps": n_steps, "first_call_s": round(first, 1),
+                   "run_s": round(t_run, 2), "closed_loop_robot_steps_per_s": round(cl, 1),
+                   "physics_steps_per_s": round(ph, 1),
+                   "physics_compile_s": round(phys_compile, 1),
+                   "closed_loop_over_physics": round(cl / ph, 3),
+                   "closed_loop_over_single_loop": round(cl / single, 3),
+                   "fell": int(np.sum(met["fell"])), "qp_failed": int(np.sum(met["qp_failed"]))}
+            rows.append(row)
+            say(f"batch {b:5d} chunk {str(used):>4}: closed loop {cl:9.1f} robot-steps/s, "
+                f"physics {ph:9.1f} steps/s, closed/physics {cl / ph:.3f}, "
+                f"closed/single-loop {cl / single:.2f} (first call {first:.0f} s, "
+                f"run {t_run:.1f} s, falls {row['fell']}, failed QPs {row['qp_failed']})")
     res = {"scenario": "arms", "single_loop_robot_steps_per_s": round(single, 1),
            "backend": jax.default_backend(), "rows": rows}
     if args.json:

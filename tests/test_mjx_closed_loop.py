@@ -59,12 +59,16 @@ def test_squat_com_matches_deployment_path(squat):
 
 @pytest.fixture(scope="module")
 def arms(arms_deployment):
-    b = 2
+    """Three rollouts in chunks of two (``run_batch(chunk=2)``: two chunks, the second
+    padded with a copy of the third rollout): the unpushed one, one pushed over (800 N),
+    and one pushed lightly (40 N). Each must come back in its own place: rollout 0
+    against the MuJoCo loop, the fall in rollout 1 only, rollout 2 standing."""
+    b = 3
     params = default_params("arms", b)
-    push = Push(force=np.array([[0.0, 0.0, 0.0], [0.0, 800.0, 0.0]]),
-                at=np.array([0.0, 0.3]), duration=np.array([0.0, 0.3]))
+    push = Push(force=np.array([[0.0, 0.0, 0.0], [0.0, 800.0, 0.0], [0.0, 40.0, 0.0]]),
+                at=np.array([0.0, 0.3, 0.3]), duration=np.array([0.0, 0.3, 0.3]))
     cfg = BatchConfig("arms", duration=ARMS_S, settle=SETTLE)
-    met, _ = run_batch(cfg, params, push, np.zeros((b, 54)))
+    met, _ = run_batch(cfg, params, push, np.zeros((b, 54)), chunk=2)
     return met, arms_deployment[0]    # the MuJoCo + PIQP run: conftest, 8 s after 1 s
 
 
@@ -84,7 +88,10 @@ def test_arms_barrier_minima_match_deployment_path(arms):
 
 def test_fallen_rollout_is_flagged_and_isolated(arms):
     met, _ = arms
-    assert met["fell"].tolist() == [False, True]
+    assert met["fell"].tolist() == [False, True, False]
+    # the light push moved the robot (not a copy of rollout 0 or of the padding)
+    assert met["tracking_rms.com"][2] > met["tracking_rms.com"][0]
+    assert met["qp_failed"][2] == 0
     t_fall = met["fell_time_s"][1]
     assert SETTLE + 0.3 < t_fall < SETTLE + ARMS_S
     for key, v in met.items():   # nothing NaN where the metric is defined
@@ -92,6 +99,7 @@ def test_fallen_rollout_is_flagged_and_isolated(arms):
             assert not np.any(np.isnan(v.astype(float))), key
     # while falling the feet lose the floor: no ZMP (-inf, as the MuJoCo loop reports it)
     assert met["zmp_margin_min"][0] > 0.0 and met["zmp_margin_min"][1] < 0.0
+    assert met["zmp_margin_min"][2] > 0.0
 
 
 WALK_S, WALK_SETTLE = 2.2, 1.2     # the conftest deployment walk: six steps
@@ -146,6 +154,8 @@ def test_bad_input_refused_before_compiling():
     bad = dataclasses.replace(bad, kp={**bad.kp, "com": bad.kp["com"][:1]})
     with pytest.raises(BatchError, match=r"params.*com.* has batch size 1"):
         run_batch(cfg, bad)
+    with pytest.raises(BatchError, match="chunk must be a positive int"):
+        run_batch(cfg, p, chunk=0)
     with pytest.raises(BatchError, match="must cover the reference blend"):
         run_batch(dataclasses.replace(cfg, settle=0.2), p)
     poles = p.poles["left_fist"].at[1, 0].set(-1.0)

@@ -24,7 +24,9 @@ last state and flagged; its metrics stop accumulating. A failed QP is counted an
 last torque. Neither touches the other rollouts of the batch.
 
 The batch is sharded over the process's devices (``jax.local_devices()``, leading axis),
-padded to a multiple of the device count.
+padded to a multiple of the device count. On a CPU with one device it runs in chunks of
+``CPU_CHUNK`` rollouts, one after the other inside the compiled call (``run_batch``'s
+``chunk``).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax import barriers, contacts, controller, metrics, walking
+from safewbc_jax.chunking import check_chunk, chunked, resolve_chunk
 from safewbc_jax.mjx_import import import_mjx
 from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.params import ControllerParams
@@ -528,9 +531,27 @@ def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, pertu
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled(pl: Plant, decimate: int, n_records: int):
-    fn = functools.partial(_rollout, pl, decimate, n_records)
-    return jax.jit(jax.vmap(fn, in_axes=(0, 0, 0, None, None, None, None)))
+def _compiled(pl: Plant, decimate: int, n_records: int, chunk: int | None):
+    """jit of the vmapped rollout over (params, push, perturb_v), the batch run ``chunk``
+    rollouts at a time (``chunking.chunked``; None: one vmap)."""
+    one = jax.vmap(functools.partial(_rollout, pl, decimate, n_records),
+                   in_axes=(0, 0, 0, None, None, None, None))
+    run = chunked(lambda batched, *shared: one(*batched, *shared), chunk)
+    return jax.jit(lambda params, push, perturb_v, *shared:
+                   run((params, push, perturb_v), *shared))
+
+
+CPU_CHUNK = 64
+"""Default ``chunk`` of ``run_batch`` on the CPU backend (rollouts per chunk)."""
+
+
+def default_chunk(backend: str | None = None, n_devices: int | None = None) -> int | None:
+    """``run_batch``'s default ``chunk``: ``CPU_CHUNK`` on the CPU backend with one local
+    device; None (one vmap over each device's share) on an accelerator, whose parallelism
+    wants the widest batch, and wherever the batch is sharded over several devices."""
+    backend = jax.default_backend() if backend is None else backend
+    n_devices = len(jax.local_devices()) if n_devices is None else n_devices
+    return CPU_CHUNK if backend == "cpu" and n_devices == 1 else None
 
 
 def _finish(pl: Plant, acc: Acc, gait, n_steps: int, k_half: int) -> dict:
@@ -600,7 +621,7 @@ def _shard(tree):
 
 
 def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = None,
-              perturb_v=None):
+              perturb_v=None, chunk: int | str | None = "auto"):
     """Run a batch of closed-loop rollouts.
 
     params: the scenario's ControllerParams with a leading batch axis B on every leaf
@@ -613,8 +634,28 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     ``cfg.decimate`` = k a dict of arrays (B, T, ...) of every k-th control step (tau,
     alive, qpos, u, status, fallback, qp_iterations, stance, y_<output>, yd_<output>,
     h_<barrier>). Walking adds avg_forward_speed, steps_taken, leg_collisions,
-    leg_contact_steps, swing_clearance_min and missed_touchdowns."""
+    leg_contact_steps, swing_clearance_min and missed_touchdowns.
+
+    chunk: run the batch ``chunk`` rollouts at a time, one chunk after the other inside
+    the one compiled call (``chunking.chunked``; the results do not depend on it); None:
+    one vmap over the whole batch; "auto" (default): ``default_chunk()``, ``CPU_CHUNK``
+    on a CPU with one device, None on accelerators and on several devices (each device
+    then runs one vmap over its share; a chunk given there is not used). A different
+    chunk is a different compile.
+
+    Why chunks on a CPU: one vmap over a large batch is slower per robot-step (its working
+    set leaves the caches, and its solver loops run until the batch's slowest QP stops).
+    Measured with ``benchmarks/closed_loop_batch.py --chunks`` (arms, 1,050 steps per
+    rollout, 2-core x86-64 machine, one timed call each), robot-steps/s: batch 1,024:
+    1,476 in chunks of 64 against 1,195 as one vmap; batch 256: 1,891 (64) and 1,804
+    (one vmap), 1,300 in chunks of 16; batch 64: 1,504 as one vmap, 1,364 / 1,247 / 1,148
+    in chunks of 16 / 32 / 8. Small chunks lose (why was not measured: a likely cause is
+    too little work per step to keep XLA's thread pool busy); 64 is the default."""
     pl = plant(cfg)
+    try:
+        check_chunk(chunk)
+    except ValueError as e:
+        raise BatchError(str(e)) from None
     if push is None or perturb_v is None:
         leaves = jax.tree_util.tree_leaves(params)
         b = np.shape(leaves[0])[0] if leaves and np.ndim(leaves[0]) else 0
@@ -631,7 +672,8 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     n_steps, settle = pl.schedule(cfg)
     k_half = half_walk_step(n_steps, settle, cfg.control_dt)
     dec = int(cfg.decimate)
-    fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0)
+    ch = resolve_chunk(chunk, padded, default_chunk(n_devices=ndev)) if ndev == 1 else None
+    fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0, ch)
     with jax_qp.blas_threads(1):      # see safewbc_jax/__init__.py
         acc, gait, recs = fn(*args, jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle),
                              jnp.asarray(cfg.speed), jnp.asarray(k_half, jnp.int32))
