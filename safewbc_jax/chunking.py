@@ -37,7 +37,11 @@ def check_chunk(chunk) -> None:
     """Raise ValueError unless ``chunk`` is a positive int, None or "auto"."""
     if chunk is None or chunk == "auto":
         return
-    if isinstance(chunk, (bool, str)) or int(chunk) != chunk or chunk < 1:
+    try:
+        ok = not isinstance(chunk, (bool, str)) and int(chunk) == chunk and chunk >= 1
+    except (TypeError, ValueError, OverflowError):     # NaN, inf, a list, ...
+        ok = False
+    if not ok:
         raise ValueError(f"chunk must be a positive int, None or 'auto', got {chunk!r}")
 
 
