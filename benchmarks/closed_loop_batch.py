@@ -80,7 +80,6 @@ def main(argv=None) -> dict:
     ap.add_argument("--chunks", nargs="+", default=["auto"],
                     help="rollouts per chunk of the batched path, each timed: positive "
                          "ints, 'none' (one vmap), 'auto' (run_batch's default)")
-
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     if min(args.batches) < 1 or args.reps < 1 or args.duration <= 0:
@@ -99,6 +98,7 @@ def main(argv=None) -> dict:
 
     from safewbc_jax.batch.rollout import (BatchConfig, default_chunk, default_params, plant,
                                            run_batch)
+    from safewbc_jax.chunking import resolve_chunk
     from safewbc_jax.mjx_import import import_mjx
 
     mjx = import_mjx()
@@ -134,8 +134,7 @@ def main(argv=None) -> dict:
         ph = b * args.physics_steps / t_phys
         seen = set()
         for chunk in chunks:
-            used = default_chunk() if chunk == "auto" else chunk
-            used = None if used is None or used >= b else used
+            used = resolve_chunk(chunk, b, default_chunk())    # as run_batch resolves it
             if used in seen:         # the same compiled function as one already timed
                 continue
             seen.add(used)

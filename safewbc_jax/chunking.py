@@ -60,14 +60,14 @@ def resolve_chunk(chunk, batch: int, default: int | None) -> int | None:
 def chunked(impl, chunk: int | None):
     """``impl(batched, *shared)`` (a function of a pytree with a leading batch axis on every
     leaf, and of arguments shared by the whole batch) run on the batch in chunks of at most
-    ``chunk`` instances; None: ``impl`` itself. To be traced inside ``jit``."""
+    ``chunk`` instances; None: ``impl`` itself. To be traced inside ``jit``. A batch of at
+    most ``chunk`` is one chunk; callers that want it to be ``impl`` itself (the same
+    compiled function as no chunking) pass ``resolve_chunk``'s answer."""
     if chunk is None:
         return impl
 
     def run(batched, *shared):
         B = jax.tree_util.tree_leaves(batched)[0].shape[0]
-        if B <= chunk:
-            return impl(batched, *shared)
         n_chunks, size = chunk_layout(B, chunk)
         pad = n_chunks * size - B
 
