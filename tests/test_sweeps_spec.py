@@ -49,8 +49,19 @@ def test_shipped_specs_are_valid():
     assert [a.name for a in s.axes] == ["push.magnitude", "push.direction", "push.at"]
     s = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
     assert [a.name for a in s.axes] == ["poles.left_fist.p1", "poles.left_fist.p2"]
-    assert s.axes[0].values[0] == pytest.approx(1.0) and s.axes[0].values[-1] == pytest.approx(64.0)
+    assert s.axes[0].values[0] == pytest.approx(2.0) and s.axes[0].values[-1] == pytest.approx(128.0)
     assert s.n_settings == 49
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "sweeps").glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_specs_pass_the_sweep_preflight(path):
+    """Every shipped spec passes every check ``safewbc sweep`` makes before it compiles,
+    Theorem 1 at each rollout's perturbed start state included, with its own seed."""
+    from safewbc_jax.sweeps.run import preflight
+
+    spec = load_spec(path)
+    base, std, settings = preflight(spec)
+    assert settings.shape[0] == spec.n_settings and std.shape[-1] > 0
 
 
 def test_grid_plan_is_row_major(tmp_path):

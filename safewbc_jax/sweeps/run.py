@@ -99,6 +99,23 @@ def _fmt_s(s: float) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
 
 
+def preflight(spec: SweepSpec, seed: int | None = None, *, check_poles: bool = True):
+    """Every check ``safewbc sweep`` makes of a parsed spec before the closed loop compiles:
+    the fixed params, the perturbation scales against the simulation model, the grid, and
+    (``check_poles``) Theorem 1 for every rollout at its own perturbed start state
+    (``admissible.check_sweep``; seconds, one small jit). Returns (base params, velocity
+    std, settings array) for the run. ``seed`` None: the spec's."""
+    seed = spec.seed if seed is None else int(seed)
+    base = spec_mod.base_params(spec)
+    std = spec_mod.velocity_std(spec, sim_model())
+    settings = spec.settings_array()
+    if check_poles:
+        from safewbc_jax.sweeps.admissible import check_sweep
+
+        check_sweep(spec, base, settings, seed, std)
+    return base, std, settings
+
+
 def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | None = None,
               executor: Callable | None = None, progress: Callable | None = None,
               spec_text: str | None = None, max_chunks: int | None = None,
@@ -128,13 +145,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 "outputs": list(spec.outputs), "target": spec.target,
                 "violation_tol": spec.violation_tol, "repeats": spec.repeats,
                 "objective": list(spec.tune.get("objective", []))}
-    base = spec_mod.base_params(spec)
-    std = spec_mod.velocity_std(spec, sim_model())
-    settings = spec.settings_array()
-    if check_poles:
-        from safewbc_jax.sweeps.admissible import check_sweep
-
-        check_sweep(spec, base, settings, seed, std)   # Theorem 1, every rollout, no compile
+    base, std, settings = preflight(spec, seed, check_poles=check_poles)
     table_mod.open_manifest(out, manifest, spec_text)
     mine = {k for k in range(len(chunks)) if k % hosts == host_index}
     stale = table_mod.remove_partial(out, mine if hosts > 1 else None)
