@@ -72,12 +72,18 @@ class ParamsError(ValueError):
     """A params override (TOML) names something that does not exist or has a bad value."""
 
 
-def _vector(src: str, key: str, value, dim: int) -> np.ndarray:
-    arr = np.asarray(value, dtype=float) if not isinstance(value, bool) else None
-    if arr is None or arr.ndim > 1 or (arr.ndim == 1 and arr.size != dim):
-        raise ParamsError(f"{src}: {key} = {value!r}: expected a number or a list of {dim} numbers")
+def _vector(src: str, table: str, name: str, value, dim: int) -> np.ndarray:
+    """``value`` of key ``name`` in TOML table ``[table]`` as a (dim,) float vector; a
+    number, or a list of ``dim`` numbers (no strings, booleans or nested tables)."""
+    where = f"{src}: [{table}] {name} = {value!r}"
+    items = value if isinstance(value, list) else [value]
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
+        raise ParamsError(f"{where}: expected a number or a list of {dim} numbers")
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim > 1 or (arr.ndim == 1 and arr.size != dim):
+        raise ParamsError(f"{where}: expected a number or a list of {dim} numbers")
     if not np.all(np.isfinite(arr)):
-        raise ParamsError(f"{src}: {key} = {value!r}: not finite")
+        raise ParamsError(f"{where}: not finite")
     return np.broadcast_to(arr, (dim,)).copy()
 
 
@@ -99,9 +105,10 @@ def apply_overrides(params: ControllerParams, overrides: dict, src: str = "param
                 if name not in table:
                     raise ParamsError(f"{src}: {key}.{name}: no output {name!r}; outputs are "
                                       f"{sorted(table)}")
-                vec = _vector(src, f"{key}.{name}", v, table[name].shape[0])
+                vec = _vector(src, key, name, v, table[name].shape[0])
                 if key != "weight" and np.any(vec <= 0) or key == "weight" and np.any(vec < 0):
-                    raise ParamsError(f"{src}: {key}.{name} = {v!r}: must be positive")
+                    raise ParamsError(f"{src}: [{key}] {name} = {v!r}: must be "
+                                      + ("positive" if key != "weight" else "non-negative"))
                 table[name] = jnp.asarray(vec)
             kw[key] = table
         elif key in ("poles", "threshold"):
@@ -112,9 +119,10 @@ def apply_overrides(params: ControllerParams, overrides: dict, src: str = "param
                 if name not in table:
                     raise ParamsError(f"{src}: {key}.{name}: no barrier {name!r}; barriers are "
                                       f"{sorted(table)}")
-                vec = _vector(src, f"{key}.{name}", v, table[name].size).reshape(table[name].shape)
+                vec = _vector(src, key, name, v, table[name].size).reshape(table[name].shape)
                 if key == "poles" and np.any(vec <= 0):
-                    raise ParamsError(f"{src}: poles.{name} = {v!r}: poles must be > 0 (Theorem 1)")
+                    raise ParamsError(f"{src}: [poles] {name} = {v!r}: poles must be > 0 "
+                                      "(Theorem 1)")
                 table[name] = jnp.asarray(vec)
             kw[key] = table
         elif key in SCALARS:

@@ -122,7 +122,15 @@ def test_params_overrides_validated(tmp_path):
            "[poles]\nleft_fist = [-1.0, 3.0]\n": "poles must be > 0",
            "[poles]\nleft_fist = [1.0, 2.0, 3.0]\n": "expected a number or a list of 2",
            "mu = 'high'\n": "expected a finite number",
-           "[kd]\ntorso = [1, 2]\n": "list of 3"}
+           "[kd]\ntorso = [1, 2]\n": "list of 3",
+           # strings and nested tables in the gain and barrier tables name table and key
+           "[kp]\ncom = \"stiff\"\n": "[kp] com = 'stiff': expected a number or a list of 3",
+           "[threshold]\nleft_fist = \"low\"\n": "[threshold] left_fist = 'low': expected a number",
+           "[weight]\ncom = [1, \"a\", 2]\n": "[weight] com = [1, 'a', 2]: expected",
+           "[kd]\ncom = true\n": "[kd] com = True: expected a number",
+           "[kp.com]\nx = 1\n": "[kp] com = {'x': 1}: expected a number",
+           "[weight]\ncom = -1\n": "[weight] com = -1: must be non-negative",
+           "[poles]\nleft_fist = [\"8\", 12]\n": "[poles] left_fist = ['8', 12]: expected"}
     for text, msg in bad.items():
         f = tmp_path / "bad.toml"
         f.write_text(text)
