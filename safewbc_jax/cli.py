@@ -23,11 +23,12 @@ def _cmd_run(args) -> int:
         try:
             push = tuple(float(f) for f in args.force.split(","))
         except ValueError:
-            raise ValueError(f"--force {args.force!r}: expected FX,FY,FZ in newtons") from None
+            raise ValueError(f"--force {args.force!r}: expected FX,FY,FZ in newtons, "
+                             "e.g. --force 0,-30,0") from None
     m = run_scenario(args.scenario, duration=args.duration, out=args.out,
                      barrier=not args.no_barrier, params_file=args.params, video=args.video,
                      settle=args.settle, speed=args.speed, push=push, push_at=args.at,
-                     push_for=args.push_for)
+                     push_for=args.push_for, quiet=args.quiet)
     print(format_summary(m))
     print(f"wrote {args.out or 'runs/' + args.scenario + ('' if not args.no_barrier else '_no_barrier')}"
           "/metrics.json, log.npz and figures")
@@ -55,6 +56,8 @@ def _cmd_sweep(args) -> int:
     from safewbc_jax.sweeps.run import run_sweep
     from safewbc_jax.sweeps.spec import load_spec
 
+    if args.host_index >= args.hosts:
+        raise ValueError(f"--host-index {args.host_index}: must be below --hosts {args.hosts}")
     spec = load_spec(args.spec)          # every check before anything compiles
     hosts, index = args.hosts, args.host_index
     if args.distributed:
@@ -66,7 +69,7 @@ def _cmd_sweep(args) -> int:
     try:
         r = run_sweep(spec, args.out, batch=args.batch, seed=args.seed,
                       spec_text=Path(args.spec).read_text(), max_chunks=args.max_chunks,
-                      hosts=hosts, host_index=index)
+                      hosts=hosts, host_index=index, quiet=args.quiet)
     except KeyboardInterrupt:
         print(f"safewbc: interrupted; the finished chunks are kept in {args.out}, rerun the "
               "same command to resume", file=sys.stderr)
@@ -92,9 +95,62 @@ def _cmd_tune_poles(args) -> int:
 
     spec = load_spec(args.spec)
     _compile_cache(args)
-    r = tune_poles(spec, args.out, work=args.work, batch=args.batch, seed=args.seed)
+    r = tune_poles(spec, args.out, work=args.work, batch=args.batch, seed=args.seed,
+                   quiet=args.quiet)
     print(r.summary())
     return 0
+
+
+def _finite_float(text: str) -> float:
+    """argparse type: a finite number (ranges that depend on the scenario are checked by
+    ``runner.check_run_options``, still before anything compiles)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if x != x or x in (float("inf"), float("-inf")):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number")
+    return x
+
+
+def _int_at_least(lo: int):
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if n < lo:
+            raise argparse.ArgumentTypeError(f"{n}: expected an integer >= {lo}")
+        return n
+
+    parse.__name__ = f"integer >= {lo}"
+    return parse
+
+
+def _numbers_text(text: str) -> bool:
+    """Whether ``text`` is a number or a comma list of numbers (nan and inf included)."""
+    try:
+        [float(t) for t in text.split(",")]
+    except ValueError:
+        return False
+    return True
+
+
+def _join_dash_values(argv: list[str]) -> list[str]:
+    """Pass a value that starts with '-' and reads as numbers on as ``--opt=value``:
+    argparse takes "--force -20,-25,0" or "--duration -inf" for an option and refuses
+    them with "expected one argument", before our range checks could name the problem."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else ""
+        if a.startswith("--") and "=" not in a and nxt.startswith("-") and _numbers_text(nxt):
+            out.append(f"{a}={nxt}")
+            i += 2
+        else:
+            out.append(a)
+            i += 1
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -110,16 +166,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller")
     p.add_argument("scenario", choices=sorted(SCENARIOS) + ["push", "walk"])
-    p.add_argument("--speed", type=float, default=0.2, help="walk/push: commanded mean "
-                   "forward speed (m/s)")
-    p.add_argument("--force", default=None, help="push: FX,FY,FZ on the torso (N); "
-                   "default 0,-30,0 (the paper's)")
-    p.add_argument("--at", type=float, default=None, help="push: start, s after walking starts "
-                   "(default 2.55: early in a right-stance step, where a push to the right "
-                   "drives the left swing foot towards the stance foot)")
-    p.add_argument("--for", dest="push_for", type=float, default=0.15, help="push: duration (s)")
-    p.add_argument("--duration", type=float, default=None, help="seconds of motion")
-    p.add_argument("--settle", type=float, default=None, help="seconds standing before the motion")
+    p.add_argument("--speed", type=_finite_float, default=None, help="walk/push: commanded "
+                   "mean forward speed (m/s; default 0.2; the ALIP planner at T = 0.35 s "
+                   "reaches -0.857 to 1.143)")
+    p.add_argument("--force", default=None, metavar="FX,FY,FZ",
+                   help="push on the torso (N, world frame; |F| <= 1000); default for the push "
+                   "scenario 0,-30,0 (the paper's, to the right). Negative components as typed: "
+                   "--force -20,-25,0")
+    p.add_argument("--at", type=_finite_float, default=None, help="push: start, s after the "
+                   "motion (walking) starts (default 2.55: early in a right-stance step, where "
+                   "a push to the right drives the left swing foot towards the stance foot)")
+    p.add_argument("--for", dest="push_for", type=_finite_float, default=None,
+                   help="push: duration (s, default 0.15)")
+    p.add_argument("--duration", type=_finite_float, default=None,
+                   help="seconds of motion (0 to 600; default: the scenario's)")
+    p.add_argument("--settle", type=_finite_float, default=None,
+                   help="seconds standing before the motion (1 to 60; default 1.5)")
     p.add_argument("--out", default=None, help="output folder (default runs/SCENARIO)")
     p.add_argument("--no-barrier", action="store_true", help="drop the A-ECBF rows")
     p.add_argument("--params", default=None, help="TOML of ControllerParams overrides")
@@ -128,24 +190,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pin the run to CPU core N (default: the last core; -1: no pinning). "
                         "A real-time loop runs on one core: XLA's thread pool spread over "
                         "shared cores adds wake-up latency to every control step")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
+                   "stderr (errors and the final summary still print)")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("sweep", help="run a sweep spec (sweeps/*.toml) as chunks of batched "
                        "closed-loop rollouts into a Parquet table; a rerun resumes")
     p.add_argument("spec", help="sweep spec TOML (see sweeps/)")
     p.add_argument("--out", required=True, help="sweep directory (table, manifest)")
-    p.add_argument("--batch", type=int, default=None,
+    p.add_argument("--batch", type=_int_at_least(1), default=None,
                    help="rollouts per chunk (default: the spec's sweep.batch, else 64)")
-    p.add_argument("--seed", type=int, default=None,
+    p.add_argument("--seed", type=_int_at_least(0), default=None,
                    help="seed of the perturbations (default: the spec's sweep.seed, else 0)")
-    p.add_argument("--max-chunks", type=int, default=None, help="stop after this many chunks")
-    p.add_argument("--hosts", type=int, default=1, help="several hosts share --out: run only "
-                   "the chunks k with k mod HOSTS = --host-index")
-    p.add_argument("--host-index", type=int, default=0, help="this host's index (0-based)")
+    p.add_argument("--max-chunks", type=_int_at_least(1), default=None,
+                   help="stop after this many chunks")
+    p.add_argument("--hosts", type=_int_at_least(1), default=1, help="several hosts share "
+                   "--out: run only the chunks k with k mod HOSTS = --host-index")
+    p.add_argument("--host-index", type=_int_at_least(0), default=0,
+                   help="this host's index (0-based, below --hosts)")
     p.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() "
                    "and take --hosts / --host-index from jax.process_count() / process_index()")
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
+                   "stderr (errors and the final summary still print)")
     p.set_defaults(func=_cmd_sweep)
 
     p = sub.add_parser("report", help="figures and summary.md of a sweep directory")
@@ -160,10 +228,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="params TOML to write")
     p.add_argument("--work", default=None, help="folder of the rounds' sweep tables "
                    "(default: OUT without .toml + '_rounds'); a rerun resumes there")
-    p.add_argument("--batch", type=int, default=None, help="rollouts per chunk")
-    p.add_argument("--seed", type=int, default=None, help="seed of the perturbations")
+    p.add_argument("--batch", type=_int_at_least(1), default=None, help="rollouts per chunk")
+    p.add_argument("--seed", type=_int_at_least(0), default=None,
+                   help="seed of the perturbations")
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
+                   "stderr (errors and the final summary still print)")
     p.set_defaults(func=_cmd_tune_poles)
     return ap
 
@@ -178,13 +249,15 @@ def pin_to_cpu(cpu: int | None) -> int | None:
     cores = sorted(os.sched_getaffinity(0))
     cpu = cores[-1] if cpu is None else cpu
     if cpu not in cores:
-        raise ValueError(f"--cpu {cpu}: this process may run on cores {cores}")
+        raise ValueError(f"--cpu {cpu}: this process may run on cores {cores} (or -1: "
+                         "no pinning)")
     os.sched_setaffinity(0, {cpu})
     return cpu
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_args(_join_dash_values(argv))
     try:
         if args.command == "run":
             pin_to_cpu(args.cpu)

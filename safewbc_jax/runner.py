@@ -11,6 +11,7 @@ import numpy as np
 from safewbc_jax import plots, scenarios
 from safewbc_jax.metrics import summarize
 from safewbc_jax.params import apply_overrides, load_overrides
+from safewbc_jax.progress import Progress
 
 
 def check_video_backend(path: str) -> None:
@@ -41,26 +42,97 @@ def check_video_backend(path: str) -> None:
 PUSH_AT = 2.55
 
 
+PUSH_FOR = 0.15          # s: default push duration
+PAPER_PUSH = (0.0, -30.0, 0.0)   # N: the paper's lateral push (to the right)
+# Ranges of the run options (safewbc run). A run logs every control step in memory (about
+# 1 kB per step), so 600 s at 1 kHz is ~0.6 GB; a push above 1,000 N for the default
+# 0.15 s gives the 48 kg robot a velocity change above 3 m/s, far past a recoverable push.
+MAX_DURATION = 600.0
+MAX_SETTLE = 60.0
+MAX_PUSH_N = 1000.0
+
+
+def _finite(opt: str, value) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{opt} {value!r}: expected a number") from None
+    if not np.isfinite(x):
+        raise ValueError(f"{opt} {value!r}: expected a finite number")
+    return x
+
+
+def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=None,
+                      push=None, push_at=None, push_for=None) -> dict:
+    """Check every numeric option of ``safewbc run`` before anything compiles and fill in
+    the defaults. Raises ValueError naming the option, its value and the allowed range;
+    an option that would have no effect in this scenario (``--speed`` when not walking,
+    ``--at``/``--for`` without a push) is refused rather than ignored. Returns the
+    effective duration, settle, speed, push, push_at and push_for."""
+    from safewbc_jax.scenarios import WALKING
+
+    walking = name in WALKING
+    duration = scenario.duration if duration is None else _finite("--duration", duration)
+    if not 0 < duration <= MAX_DURATION:
+        raise ValueError(f"--duration {duration:g}: seconds of motion must be in (0, "
+                         f"{MAX_DURATION:g}]")
+    settle = scenario.settle if settle is None else _finite("--settle", settle)
+    if not scenario.blend <= settle <= MAX_SETTLE:
+        raise ValueError(f"--settle {settle:g}: must be in [{scenario.blend:g}, {MAX_SETTLE:g}] s "
+                         f"(at least the {scenario.blend:g} s reference blend)")
+    if speed is not None and not walking:
+        raise ValueError(f"--speed applies to the walking scenarios {list(WALKING)}, not {name!r}")
+    if walking:
+        from safewbc_jax.walking import STEP_T, STEP_X, reachable_speeds
+
+        speed = 0.2 if speed is None else _finite("--speed", speed)
+        lo, hi = reachable_speeds()
+        if not lo <= speed <= hi:
+            raise ValueError(
+                f"--speed {speed:g}: the ALIP planner at T = {STEP_T:g} s reaches mean forward "
+                f"speeds in [{lo:.3f}, {hi:.3f}] m/s (steps of {STEP_X[0]:g} to {STEP_X[1]:g} m "
+                "per period); the walks in the README were run at 0.2 m/s")
+    if name == "push" and push is None:
+        push = PAPER_PUSH
+    if push is None:
+        if push_at is not None or push_for is not None:
+            raise ValueError("--at and --for time a push: give --force FX,FY,FZ (or run the "
+                             "push scenario)")
+    else:
+        push = tuple(_finite("--force", f) for f in push)
+        if len(push) != 3:
+            raise ValueError(f"--force {push!r}: expected three numbers FX,FY,FZ (N)")
+        if np.linalg.norm(push) > MAX_PUSH_N:
+            raise ValueError(f"--force {','.join(f'{f:g}' for f in push)}: |F| = "
+                             f"{np.linalg.norm(push):.0f} N, the allowed range is |F| <= "
+                             f"{MAX_PUSH_N:g} N")
+        push_at = PUSH_AT if push_at is None else _finite("--at", push_at)
+        push_for = PUSH_FOR if push_for is None else _finite("--for", push_for)
+        if not push_for > 0:
+            raise ValueError(f"--for {push_for:g}: the push duration must be > 0 s")
+        if not (0 <= push_at and push_at + push_for <= duration):
+            raise ValueError(f"--at {push_at:g} --for {push_for:g}: the push must lie within "
+                             f"the {duration:g} s of motion (0 <= at, at + for <= {duration:g})")
+    return dict(duration=duration, settle=settle, speed=0.2 if speed is None else speed,
+                push=push, push_at=PUSH_AT if push_at is None else push_at,
+                push_for=PUSH_FOR if push_for is None else push_for)
+
+
 def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_file=None,
                  video=None, settle=None, control_dt=1e-3, quiet=False,
-                 record_qps_every=0, speed=0.2, push=None, push_at=None, push_for=0.15) -> dict:
-    """Validate everything, run, write metrics.json, log.npz and figures; return metrics."""
+                 record_qps_every=0, speed=None, push=None, push_at=None, push_for=None) -> dict:
+    """Validate everything, run, write metrics.json, log.npz and figures; return metrics.
+    Options left None take the scenario's defaults (``check_run_options``)."""
     from safewbc_jax.sim.mujoco_loop import RunConfig, run
 
     scenario = scenarios.get_scenario(name, barrier)
-    if name == "push" and push is None:
-        push = (0.0, -30.0, 0.0)  # the paper's lateral push
-    if push is not None and (len(push) != 3 or not all(np.isfinite(push))):
-        raise ValueError(f"--force must be three finite numbers FX,FY,FZ, got {push!r}")
-    if push_at is None:
-        push_at = PUSH_AT
-    if push_for <= 0:
-        raise ValueError(f"--for must be positive, got {push_for}")
+    opts = check_run_options(name, scenario, duration=duration, settle=settle, speed=speed,
+                             push=push, push_at=push_at, push_for=push_for)
+    duration, settle, speed = opts["duration"], opts["settle"], opts["speed"]
+    push, push_at, push_for = opts["push"], opts["push_at"], opts["push_for"]
     params = scenario.default_params()
     if params_file is not None:
         params = apply_overrides(params, load_overrides(params_file), str(params_file))
-    if duration is not None and not duration > 0:
-        raise ValueError(f"--duration must be positive, got {duration}")
     if video:
         check_video_backend(video)
     out_dir = Path(out) if out else Path("runs") / (name + ("" if barrier else "_no_barrier"))
@@ -71,8 +143,15 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
                     record_qps_every=record_qps_every, speed=speed,
                     push_force=None if push is None else tuple(float(f) for f in push),
                     push_at=push_at, push_for=push_for)
-    log, info = run(scenario, params, cfg,
-                    progress=None if quiet else lambda k, n: say(f"[safewbc] step {k}/{n}"))
+    # a tqdm bar of the control steps on stderr (one line per phase off a terminal)
+    bar = Progress(f"[safewbc] {name}", unit="steps", phase="compiling", quiet=quiet)
+    try:
+        log, info = run(scenario, params, cfg,
+                        progress=None if quiet else lambda k, n, ph: bar.update_to(k, ph, n))
+    except BaseException:
+        bar.close()
+        raise
+    bar.close("fell" if info["fell"] else "done")
     metrics = summarize(log, info, name, control_dt)
     metrics["barrier_on"] = bool(barrier)
     if push is not None:

@@ -70,6 +70,15 @@ EARLY_TOUCHDOWN = 0.2   # x weight: swing-sole force that ends a step between T/
 TOUCH_FORCE = 5.0       # N: swing-sole force that ends a step from T on
 
 
+def reachable_speeds(T: float = STEP_T) -> tuple[float, float]:
+    """(least, greatest) mean forward speed (m/s) the ALIP planner can command at step
+    period T. On the planner's periodic orbit (``alip.plan_foot_placement`` with
+    average_velocity) the CoM advances one step length per step, so the step is
+    u_x = v_des T; ``plan_step`` clips u_x to STEP_X, so a v_des beyond STEP_X / T is never
+    reached, whatever the controller does."""
+    return STEP_X[0] / T, STEP_X[1] / T
+
+
 def _swing_select(domain, left_val, right_val):
     """The swing foot's value: in left stance the right foot swings."""
     stance = domain["stance"]

@@ -305,3 +305,18 @@ def test_swing_reference_walking_profiles():
     assert np.allclose(paper.vel[:2], alip.SWING_RATE / T * (u - p0), rtol=1e-14)
     with pytest.raises(ValueError):
         alip.swing_foot_reference(0.1, T, p0, u, horizontal="cubic")
+
+
+def test_reachable_speeds_are_the_step_clip_over_T():
+    """walking.reachable_speeds (what ``safewbc run walk --speed`` accepts) against the
+    planner itself: on its periodic orbit at the limit speeds the step is exactly the
+    clip bound STEP_X, and 5 % beyond a limit it would need a step the clip cuts off."""
+    from safewbc_jax import walking
+
+    lo, hi = walking.reachable_speeds(T)
+    assert (lo, hi) == pytest.approx((walking.STEP_X[0] / T, walking.STEP_X[1] / T))
+    for v, bound in ((hi, walking.STEP_X[1]), (lo, walking.STEP_X[0])):
+        r = simulate(*START, v, 0.22, n_steps=40, average_velocity=True)
+        assert r["u"][-1, 0] == pytest.approx(bound, abs=1e-6)
+        r = simulate(*START, 1.05 * v, 0.22, n_steps=40, average_velocity=True)
+        assert abs(r["u"][-1, 0]) > abs(bound) * 1.04

@@ -255,3 +255,45 @@ def test_short_walk(short_walk_deployment):
     com = log["y_com"][walk]
     assert com[-1, 0] - com[0, 0] > 0.15   # m forward (0.2 m/s for 2.2 s is 0.44 m)
     assert np.all(log["base_z"] > 0.8)
+
+
+@pytest.mark.slow
+def test_walking_zmp_margin_is_the_stance_sole_rectangle(short_walk_deployment, sim_mj,
+                                                          ctrl_mj, rm):
+    """In single support the logged ZMP margin is the distance of the ZMP to the stance
+    sole's own rectangle (the domain's support polygon), evaluated here directly: the
+    stance wrench lambda^c (contact frame = sole site frame, at its origin) gives the ZMP in
+    the sole frame, p = (-m_y, m_x) / f_z, and the 0.235 m x 0.08 m rectangle its signed
+    distance. Tolerance 1 mm: the direct evaluation takes the ZMP on the sole's own plane,
+    the metric on the level plane through the sole origin, and the stance sole tilts by
+    milliradians. The hull of both soles (the metric before the fix, one sole in the air)
+    differs from it by more than 5 mm at some steps, so this test sees that mistake."""
+    from safewbc_jax import contacts, statemap
+
+    _, tmp_path = short_walk_deployment
+    log = np.load(tmp_path / "log.npz")
+    sm = statemap.build_state_map(sim_mj, ctrl_mj)
+    both = jax.jit(lambda q, lam: contacts.zmp_margin(rm, q, lam, jnp.ones(2)))
+    half = np.array([contacts.SOLE_LENGTH, contacts.SOLE_WIDTH]) / 2
+    checked, old_gap = 0, 0.0
+    # step k + 1 senses the state after step k's physics (log qpos[k]) and runs in the
+    # domain the gait chose at the end of step k (log stance[k])
+    for k in range(len(log["tau"]) - 1):
+        stance, lam, got = log["stance"][k], log["lambda"][k + 1], log["zmp_margin"][k + 1]
+        if stance == 0 or log["tau"][k + 1] < 0 or not np.isfinite(got):
+            continue
+        i = 0 if stance > 0 else 1
+        w = lam[6 * i:6 * i + 6]
+        if w[2] <= 0:
+            continue
+        p = np.array([-w[4], w[3]]) / w[2]          # ZMP in the stance sole's frame
+        out = np.abs(p) - half
+        want = (-np.linalg.norm(np.maximum(out, 0.0)) if np.any(out > 0)
+                else float(np.min(-out)))
+        assert abs(got - want) <= 1e-3, (k, got, want)
+        checked += 1
+        if checked % 10 == 0:
+            q, _ = sm.to_controller(log["qpos"][k], np.zeros(sim_mj.nv))
+            old_gap = max(old_gap, abs(float(both(jnp.asarray(q), jnp.asarray(lam))) - want))
+    assert checked > 1000, checked
+    assert old_gap > 5e-3, old_gap

@@ -397,7 +397,9 @@ def _update(pl: Plant, acc: Acc, live, tau, q, u, lam, res, aux, dx_new, domain)
         track_n[o.name] = acc.track_n[o.name] + jnp.where(row, 1, 0).astype(jnp.int32)
     h_min = {n: jnp.where(live, jnp.minimum(acc.h_min[n], aux["barrier_h"][n]), acc.h_min[n])
              for n in acc.h_min}
-    margin = contacts.zmp_margin(model, q, lam, jnp.asarray(sc.in_contact, q.dtype))
+    # the support polygon of the domain the QP ran in (single support: the stance sole)
+    in_contact = domain["in_contact"] if domain is not None else sc.in_contact
+    margin = contacts.zmp_margin(model, q, lam, jnp.asarray(in_contact, q.dtype))
     zmp_ok = live & (tau >= 0) & (fb != jax_qp.FALLBACK_FAILED)
     sites = dx_new.site_xpos
     slip = jnp.max(jnp.linalg.norm(sites[pl.sole_sites, :2] - pl.sole0_xy, axis=-1))

@@ -177,7 +177,14 @@ def load_at_stand():
 
 
 def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None):
-    """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict)."""
+    """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict).
+
+    ``progress(k, n, phase)``, when given, is called with k = 0 and phase "compiling" just
+    before the first control step (which compiles the controller), then after every control
+    step with k the steps done of n and the phase of that step: "standing" (the settle,
+    tau < 0) or "motion". It runs outside the timed part of the step (t_qp, t_solve), and
+    must be cheap (``progress.Progress.update_to`` is: a few microseconds).
+    """
     import mujoco
 
     ms, mc, model, sm, d = load_at_stand()
@@ -236,6 +243,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     zmp_fn = jax.jit(partial(contacts.zmp_margin, model))
     nc_chain = controller.n_chain_rows(model)
     recorded = []
+    if progress is not None:
+        progress(0, n_steps, "compiling")
     compile_t0 = time.perf_counter()
     compile_s = 0.0
     for k in range(n_steps):
@@ -263,7 +272,9 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         log["t_qp"].append(tq), log["t_solve"].append(ts)
         log["eq_residual"].append(info["eq_residual"] if x is not None else np.nan)
         log["lambda"].append(lam)
-        log["zmp_margin"].append(float(zmp_fn(q, jnp.asarray(lam), in_contact))
+        # the support polygon of the domain the QP ran in (single support: the stance sole)
+        log["zmp_margin"].append(float(zmp_fn(q, jnp.asarray(lam),
+                                              domain["in_contact"] if walking else in_contact))
                                  if x is not None else np.nan)
         mask = ({k: np.asarray(m_) for k, m_ in scenario.weight_mask(domain).items()}
                 if walking and scenario.weight_mask is not None else {})
@@ -304,11 +315,11 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         log["slip"].append(slip), log["loop_residual"].append(sim_loop_residual(ms, d, loop_pairs))
         log["base_z"].append(float(d.xpos[base_id][2]))
         log["qpos"].append(d.qpos.copy())
+        if progress is not None:
+            progress(k + 1, n_steps, "standing" if tau < 0 else "motion")
         if not np.all(np.isfinite(d.qpos)) or d.xpos[base_id][2] < FALL_HEIGHT:
             fell = True
             break
-        if progress is not None and k % 500 == 0:
-            progress(k, n_steps)
     arrays = {k: np.asarray(v) for k, v in log.items()}
     arrays["compile_s"] = np.asarray(compile_s)
     if recorded:

@@ -18,9 +18,15 @@ from typing import Callable
 
 import numpy as np
 
+from safewbc_jax.progress import Progress
 from safewbc_jax.sweeps import spec as spec_mod
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.spec import SweepSpec
+
+# (scenario, barrier, duration, settle, control_dt, batch) of the real rollouts this process
+# has compiled (run_batch keeps its jitted rollout): a sweep's first chunk of one of these
+# shows the phase "rolling out", not "compiling" (tune-poles' later rounds)
+_COMPILED: set = set()
 
 
 @dataclasses.dataclass
@@ -119,10 +125,15 @@ def preflight(spec: SweepSpec, seed: int | None = None, *, check_poles: bool = T
 def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | None = None,
               executor: Callable | None = None, progress: Callable | None = None,
               spec_text: str | None = None, max_chunks: int | None = None,
-              check_poles: bool = True, hosts: int = 1, host_index: int = 0) -> SweepResult:
+              check_poles: bool = True, hosts: int = 1, host_index: int = 0,
+              quiet: bool = False, desc: str | None = None, stream=None) -> SweepResult:
     """Run (or resume) the sweep into ``out``. ``executor(spec, params, push, perturb_v)``
     returns the metrics dict of a batch (default: the real ``run_batch``).
     ``max_chunks`` stops after that many chunks of this call (for notebooks and tests).
+    Progress: with ``progress`` None, a tqdm bar of the rollouts (``progress.Progress``,
+    titled ``desc``) and the messages go to ``stream`` (default stderr), nothing with
+    ``quiet``; a ``progress`` callable instead receives every message and one line per
+    chunk, and no bar is drawn.
     With ``hosts`` N > 1 this process runs the chunks k with k mod N = ``host_index`` (the
     same command on N hosts sharing ``out`` runs the whole sweep once)."""
     if not (hosts >= 1 and 0 <= host_index < hosts):
@@ -134,8 +145,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         raise ValueError(f"--batch must be >= 1, got {batch}")
     if seed < 0:
         raise ValueError(f"--seed must be >= 0, got {seed}")
-    say = progress if progress is not None else (
-        lambda msg: print(msg, file=sys.stderr, flush=True))
+    say = progress if progress is not None else (lambda msg: None) if quiet else (
+        lambda msg: print(msg, file=sys.stderr if stream is None else stream, flush=True))
     n = spec.n_rollouts
     chunks = table_mod.plan_chunks(n, batch)
     manifest = {"format": 1, "fingerprint": spec.fingerprint(), "seed": seed, "batch": batch,
@@ -171,41 +182,60 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     import jax
 
     devs = jax.devices()
+    key = (None if executor is not None else
+           (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt, batch))
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
         f"in {len(chunks)} chunks of {batch} on {len(devs)} device{'s' if len(devs) > 1 else ''} "
-        f"({devs[0].platform}); the first chunk includes compilation")
-    for c, k in enumerate(todo):
-        start, stop = chunks[k]
-        rollouts = np.arange(start, stop)
-        params, push, dv, cols = chunk_inputs(spec, base, settings, rollouts, seed, std)
-        m = stop - start
-        if m < batch:
-            params = jax.tree_util.tree_map(lambda x: _pad(x, batch), params)
-            push = {kk: _pad(v, batch) for kk, v in push.items()}
-            dv = _pad(dv, batch)
-        metrics = execute(spec, params, push, dv)
-        for name, v in metrics.items():
-            v = np.asarray(v)
-            if v.shape[:1] != (batch,):
-                raise RuntimeError(f"run_batch returned metric {name!r} of shape {v.shape}, "
-                                   f"expected ({batch},)")
-            cols[name] = v[:m]
-        cols["chunk"] = np.full(m, k, np.int64)
-        table_mod.write_chunk(out, k, cols, {"chunk": k, "start": start, "stop": stop,
-                                            "seed": seed, "fingerprint": manifest["fingerprint"]})
-        ran += m
-        now = time.perf_counter()
-        chunk_times.append((m, now - t_chunk))
-        t_chunk = now
-        el = now - t0
-        # after the first chunk (which compiles), estimate from the later ones only
-        steady = chunk_times[1:] or chunk_times
-        rate = sum(x for x, _ in steady) / max(sum(t for _, t in steady), 1e-9)
-        left = sum(chunks[j][1] - chunks[j][0] for j in todo[c + 1:])   # of this process
-        total_done = sum(chunks[j][1] - chunks[j][0] for j in table_mod.finished_chunks(out))
-        say(f"[sweep] {total_done}/{n} rollouts  {rate:.3g} rollouts/s  "
-            f"ETA {_fmt_s(left / rate if rate > 0 else float('inf'))}  "
-            f"(chunk {k + 1}/{len(chunks)}, {el:.0f} s so far"
-            + (", first chunk with compilation" if len(chunk_times) == 1 else "") + ")")
+        f"({devs[0].platform})" + ("" if key in _COMPILED else
+                                   "; the first chunk includes compilation"))
+    # the bar: this process's rollouts, after those already in the table
+    done_n = sum(chunks[j][1] - chunks[j][0] for j in done)
+    bar = Progress(desc or "[sweep]", unit="rollouts", initial=done_n,
+                   total=done_n + sum(chunks[j][1] - chunks[j][0] for j in todo),
+                   phase="rolling out" if key in _COMPILED else "compiling",
+                   quiet=quiet or progress is not None, stream=stream)
+    try:
+        for c, k in enumerate(todo):
+            start, stop = chunks[k]
+            rollouts = np.arange(start, stop)
+            params, push, dv, cols = chunk_inputs(spec, base, settings, rollouts, seed, std)
+            m = stop - start
+            if m < batch:
+                params = jax.tree_util.tree_map(lambda x: _pad(x, batch), params)
+                push = {kk: _pad(v, batch) for kk, v in push.items()}
+                dv = _pad(dv, batch)
+            metrics = execute(spec, params, push, dv)
+            if key is not None:
+                _COMPILED.add(key)
+            for name, v in metrics.items():
+                v = np.asarray(v)
+                if v.shape[:1] != (batch,):
+                    raise RuntimeError(f"run_batch returned metric {name!r} of shape {v.shape}, "
+                                       f"expected ({batch},)")
+                cols[name] = v[:m]
+            cols["chunk"] = np.full(m, k, np.int64)
+            table_mod.write_chunk(out, k, cols, {"chunk": k, "start": start, "stop": stop,
+                                                "seed": seed,
+                                                "fingerprint": manifest["fingerprint"]})
+            ran += m
+            if progress is None:       # the bar (nothing with quiet)
+                bar.update(m, "rolling out")
+                continue
+            # a progress callable: one line per chunk
+            now = time.perf_counter()
+            chunk_times.append((m, now - t_chunk))
+            t_chunk = now
+            el = now - t0
+            # after the first chunk (which compiles), estimate from the later ones only
+            steady = chunk_times[1:] or chunk_times
+            rate = sum(x for x, _ in steady) / max(sum(t for _, t in steady), 1e-9)
+            left = sum(chunks[j][1] - chunks[j][0] for j in todo[c + 1:])   # of this process
+            total_done = sum(chunks[j][1] - chunks[j][0] for j in table_mod.finished_chunks(out))
+            say(f"[sweep] {total_done}/{n} rollouts  {rate:.3g} rollouts/s  "
+                f"ETA {_fmt_s(left / rate if rate > 0 else float('inf'))}  "
+                f"(chunk {k + 1}/{len(chunks)}, {el:.0f} s so far"
+                + (", first chunk with compilation" if len(chunk_times) == 1 else "") + ")")
+    finally:
+        bar.close()
     el = time.perf_counter() - t0
     return SweepResult(out, n, len(chunks), len(todo), len(done), el, ran / el if el > 0 else float("nan"))

@@ -109,7 +109,10 @@ def _distribution(spec: SweepSpec, name: str):
 
 
 def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, executor=None,
-               progress=None) -> TuneResult:
+               progress=None, quiet=False) -> TuneResult:
+    """``progress``: a callable for the messages and each round's per-chunk lines (no bar);
+    None: the messages on stderr and each round's sweep as a tqdm bar "[tune] round i/N"
+    (``run_sweep``); ``quiet``: neither."""
     from safewbc_jax.params import apply_overrides, load_overrides, to_toml
     from safewbc_jax.sweeps import admissible
     from safewbc_jax.sweeps.report import outcome
@@ -123,7 +126,8 @@ def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, execut
     if not spec.barrier or not name or name not in spec.barriers:
         raise SpecError(f"{spec.path}: tune-poles needs an enforced barrier (sweep.barrier = "
                         f"true and tune.barrier one of {list(spec.barriers) or 'none'})")
-    say = progress or (lambda m: print(m, file=sys.stderr, flush=True))
+    say = progress or ((lambda m: None) if quiet else
+                       (lambda m: print(m, file=sys.stderr, flush=True)))
     work = Path(work) if work else out.with_name(out.stem + "_rounds")
     seed = spec.seed if seed is None else int(seed)
     r = spec.pole_counts[name]
@@ -178,8 +182,9 @@ def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, execut
         rdir = work / f"round-{i + 1}"
         say(f"[tune] round {i + 1}: {len(cand)} candidates, poles in "
             + " x ".join(f"[{np.exp(lo[j]):.3g}, {np.exp(hi[j]):.3g}]" for j in range(r)))
-        run_sweep(sub, rdir, batch=batch, seed=seed, executor=executor, progress=say,
-                  check_poles=True)
+        run_sweep(sub, rdir, batch=batch, seed=seed, executor=executor, progress=progress,
+                  check_poles=True, quiet=quiet,
+                  desc=f"[tune] round {i + 1}/{spec.tune['rounds']}:")
         man = json.loads((rdir / "sweep.json").read_text())
         cols = read_columns(rdir)
         oc = outcome(man, cols)
