@@ -13,6 +13,30 @@ Returns ``(x, status)``:
   a batch   x of shape (B, n) with all-NaN rows where there is no usable solution;
             status an int32 numpy array of the codes
 
+Accepted parts (each combination qpsolvers accepts; tests/test_solve_qp_parts.py):
+  * any subset of {G and h (together), A and b (together), lb, ub} may be None, all 16,
+    for one QP and for a batch, with either solver, fallback and structure "auto" /
+    "generic": no inequalities, no equalities, box bounds only, unconstrained, ... An
+    absent part is a zero-row G / A or an infinite bound; given bounds may have
+    infinite entries (-inf in lb, +inf in ub: unbounded there), h may have +inf entries.
+  * one QP may also use qpsolvers' other forms: a 1-D G or A is one row, a scalar h or
+    b one entry, a (1, k) or (k, 1) vector is flat, P, G, A may be scipy.sparse (made
+    dense) or nested lists.
+  * lb_j > ub_j for some j (an empty box): status INFEASIBLE and no x, whatever the
+    solver and ``fallback`` (the fallback relaxes soft rows of G, never bounds); in a
+    batch only those QPs. Decided here from the data, for both solvers alike.
+  * unbounded below (P singular along a feasible direction of decreasing cost, e.g. an
+    equality-only QP with P singular on null(A) and q not orthogonal to it): INFEASIBLE
+    (dual infeasibility), no x. A singular P with a finite minimum is solved (x one of
+    the minimisers).
+  * solver="jax", generic path: A must have full row rank. As many rows as variables is
+    fine (x = A^-1 b, then checked against G and the bounds); more rows than variables
+    is refused (ValueError); a rank-deficient A with fewer rows gives NUMERICAL.
+  * structure="controller" on a QP without that structure (for the given nv, nu) is
+    refused (ValueError saying what the structure is).
+  * a shape that does not match (n from P, mi from G, me from A, B from P in a batch):
+    ValueError naming the argument.
+
 ``status`` always describes the QP as posed. With ``fallback=False`` (default, plain
 qpsolvers semantics) x is returned only where status is SOLVED. With ``fallback=True``
 the project's fallback policy applies (``piqp_path.PiqpSolver``): where the QP is not
@@ -35,6 +59,8 @@ solver="jax"   ``jax_qp`` (pure JAX, batched). ``structure="auto"`` uses the con
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from safewbc_jax.solvers.status import INFEASIBLE, MAX_ITER, NUMERICAL, SOLVED, SolveStatus
@@ -43,44 +69,91 @@ SOLVERS = ("jax", "piqp")
 _FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
 
 
+def _dense(v):
+    """A scipy.sparse matrix as a dense array (qpsolvers accepts sparse P, G, A)."""
+    if v is not None and hasattr(v, "toarray") and not isinstance(v, np.ndarray):
+        return v.toarray()
+    return v
+
+
 def _as_qp(P, q, G, h, A, b, lb, ub, soft):
-    """Stacked float64 numpy QP (leading batch axis added for one QP); (qp, batched)."""
+    """Stacked float64 numpy QP (leading batch axis added for one QP); (qp, batched).
+
+    Absent parts become zero-row G, h (and soft) / A, b, and infinite bounds. For one QP
+    the shapes qpsolvers also accepts are normalised as it does: a 1-D G or A is one row,
+    a scalar h or b one entry, a vector of shape (1, k) or (k, 1) flat. Every mismatch is
+    a ValueError naming the argument."""
     from safewbc_jax.qp_types import QP
-
-    P = np.asarray(P, dtype=np.float64)
-    if P.ndim not in (2, 3) or P.shape[-1] != P.shape[-2]:
-        raise ValueError(f"P must be (n, n) or (B, n, n), got shape {P.shape}")
-    batched = P.ndim == 3
-    if not batched:
-        P = P[None]
-    nb, n = P.shape[0], P.shape[-1]
-
-    def arr(v, trailing, fill, name):
-        if v is None:
-            return np.full((nb,) + trailing, fill, dtype=np.float64)
-        v = np.asarray(v, dtype=np.float64)
-        if not batched:
-            v = v[None]
-        if v.shape[0] != nb or v.shape[1:] != trailing:
-            raise ValueError(f"{name}: expected shape {(nb,) + trailing if batched else trailing}, "
-                             f"got {v.shape if batched else v.shape[1:]}")
-        return v
 
     if (G is None) != (h is None):
         raise ValueError("G and h must be given together")
     if (A is None) != (b is None):
         raise ValueError("A and b must be given together")
-    mi = 0 if G is None else np.asarray(G).shape[-2]
-    me = 0 if A is None else np.asarray(A).shape[-2]
+    P = np.asarray(_dense(P), dtype=np.float64)
+    if P.ndim not in (2, 3) or P.shape[-1] != P.shape[-2]:
+        raise ValueError(f"P must be (n, n) or (B, n, n), got shape {P.shape}")
+    if P.shape[-1] == 0:
+        raise ValueError("P: a QP needs at least one variable, got shape (0, 0)")
+    batched = P.ndim == 3
+    if not batched:
+        P = P[None]
+    nb, n = P.shape[0], P.shape[-1]
+
+    def as_array(v, name, matrix):
+        try:
+            v = np.asarray(_dense(v), dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{name}: not an array of numbers ({e})") from None
+        if not batched:
+            if matrix and v.ndim == 1:
+                v = v[None, :]                       # qpsolvers: a 1-D matrix is one row
+            elif not matrix and v.ndim == 0:
+                v = v[None]
+            elif not matrix and v.ndim == 2 and 1 in v.shape:
+                v = v.ravel()                        # qpsolvers flattens (1, k) / (k, 1)
+        return v
+
+    def rows(M, name):
+        M = as_array(M, name, True)
+        want = 3 if batched else 2
+        if M.ndim != want:
+            raise ValueError(f"{name}: expected a matrix of shape "
+                             f"{'(B, m, n)' if batched else '(m, n)'} with n = {n}, "
+                             f"got shape {M.shape}")
+        return M, M.shape[-2]
+
+    def arr(v, trailing, fill, name, matrix=False):
+        if v is None:
+            return np.full((nb,) + trailing, fill, dtype=np.float64)
+        v = as_array(v, name, matrix)
+        if not batched:
+            v = v[None]
+        if v.shape[1:] != trailing or v.shape[0] != nb:
+            raise ValueError(f"{name}: expected shape {(nb,) + trailing if batched else trailing}, "
+                             f"got {v.shape if batched else v.shape[1:]}")
+        return v
+
+    mi = me = 0
+    if G is not None:
+        G, mi = rows(G, "G")
+    if A is not None:
+        A, me = rows(A, "A")
     qp = QP(P=P, q=arr(q, (n,), 0.0, "q"),
-            A=arr(A, (me, n), 0.0, "A"), b=arr(b, (me,), 0.0, "b"),
-            G=arr(G, (mi, n), 0.0, "G"), h=arr(h, (mi,), 0.0, "h"),
+            A=arr(A, (me, n), 0.0, "A", True), b=arr(b, (me,), 0.0, "b"),
+            G=arr(G, (mi, n), 0.0, "G", True), h=arr(h, (mi,), 0.0, "h"),
             lb=arr(lb, (n,), -np.inf, "lb"), ub=arr(ub, (n,), np.inf, "ub"),
             soft=arr(soft, (mi,), 0.0, "soft"))
     return qp, batched
 
 
-def _piqp(qp, fallback, settings):
+def _crossed_bounds(qp) -> np.ndarray:
+    """(B,) True where some lb_j > ub_j: the QP has no feasible point (INFEASIBLE, decided
+    here rather than by the solvers: the JAX solver's certificate of infeasibility is over
+    the rows of G and cannot see a box that is empty on its own)."""
+    return np.any(qp.lb > qp.ub, axis=-1)
+
+
+def _piqp(qp, fallback, settings, skip):
     from safewbc_jax.qp_types import QP
     from safewbc_jax.solvers.piqp_path import PiqpSolver, solve_qp_piqp
 
@@ -89,6 +162,8 @@ def _piqp(qp, fallback, settings):
     st = np.zeros(nb, dtype=np.int32)
     solver = PiqpSolver(update=False, **settings) if fallback else None
     for i in range(nb):
+        if skip[i]:
+            continue
         qpi = QP(*(getattr(qp, f)[i] for f in _FIELDS))
         if fallback:
             x, info = solver.solve(qpi)
@@ -109,8 +184,15 @@ def _jax(qp, fallback, structure, nv, nu, dtype, settings):
 
     if structure not in ("auto", "controller", "generic"):
         raise ValueError(f"structure must be 'auto', 'controller' or 'generic', got {structure!r}")
-    use_ctrl = structure == "controller" or (
-        structure == "auto" and jax_qp.has_controller_structure(qp, nv, nu))
+    has_ctrl = structure != "generic" and jax_qp.has_controller_structure(qp, nv, nu)
+    if structure == "controller" and not has_ctrl:
+        raise ValueError(
+            f"structure='controller' needs the controller's QP: X = [q_ddot (nv={nv}), "
+            f"u (nu={nu}), lambda (nc)] with nv + nc equality rows, the constraint rows "
+            f"of A zero on u and a symmetric mass-matrix block; this QP has "
+            f"n={qp.P.shape[-1]} variables and {qp.A.shape[-2]} equality rows (pass its nv "
+            "and nu, or use structure='auto' or 'generic')")
+    use_ctrl = structure == "controller" or (structure == "auto" and has_ctrl)
     qpj = QP(*(jnp.asarray(getattr(qp, f)) for f in _FIELDS))
     if use_ctrl:
         bounded = reduce.bounded_variables(QP(*(getattr(qp, f)[0] for f in _FIELDS)), nv, nu)
@@ -143,16 +225,24 @@ def solve_qp(P, q, G=None, h=None, A=None, b=None, lb=None, ub=None, solver: str
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}; expected one of {SOLVERS}")
     qp, batched = _as_qp(P, q, G, h, A, b, lb, ub, soft)
+    crossed = _crossed_bounds(qp)
     if solver == "piqp":
         if dtype is not None or settings is not None:
             raise ValueError("dtype and settings apply to solver='jax' only "
                              "(PIQP settings go as keyword arguments)")
-        x, status = _piqp(qp, fallback, solver_settings)
+        x, status = _piqp(qp, fallback, solver_settings, crossed)
     else:
         if solver_settings:
             raise ValueError(f"unknown arguments for solver='jax': {sorted(solver_settings)} "
                              "(pass a jax_qp.Settings as settings=)")
+        if np.any(crossed):
+            # their results are replaced below; uncrossed bounds (same finite pattern)
+            # keep them from holding up the batch's loop until max_iter
+            lo, hi = np.minimum(qp.lb, qp.ub), np.maximum(qp.lb, qp.ub)
+            qp = dataclasses.replace(qp, lb=lo, ub=hi)
         x, status = _jax(qp, fallback, structure, nv, nu, dtype, settings)
+    x = np.where(crossed[:, None], np.nan, x)
+    status = np.where(crossed, int(INFEASIBLE), status).astype(np.int32)
     if batched:
         return x, status
     x0 = x[0]

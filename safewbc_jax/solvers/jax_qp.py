@@ -722,8 +722,19 @@ def _polish(it: _It, pb: _Box, st: Settings, active, kmax: int):
 
 
 def _solve_box(P, q, G, h, lb, ub, sig, st: Settings, active, relax: bool):
-    """Scale, IPM, polish; (u, s [unscaled], status, iterations, polished)."""
+    """Scale, IPM, polish; (u, s [unscaled], status, iterations, polished).
+
+    A problem without rows (G of shape (0, n): no inequalities and no equalities, or the
+    controller's QP without G rows and bounded variables) gets one row that is switched
+    off (0 u <= 1e30, which ``_scale_problem`` marks ``row_on`` False), so that the
+    iteration's reductions over rows never see an empty array; its slack is dropped from
+    the result. Static shapes: the other problems compile as before."""
     dt = P.dtype
+    m0 = G.shape[0]
+    if m0 == 0:
+        G = jnp.zeros((1, P.shape[0]), dt)
+        h = jnp.full((1,), 1e30, dt)
+        sig = jnp.zeros((1,), dt)
     if relax:
         rho = jnp.full(h.shape, st.relax_rho, dt)
         c = jnp.full(h.shape, st.relax_rho_lin, dt)
@@ -754,7 +765,7 @@ def _solve_box(P, q, G, h, lb, ub, sig, st: Settings, active, relax: bool):
         u = jnp.where(use, up, u)
         s = jnp.where(use, sp, s)
         status = jnp.where(use, SOLVED, status).astype(jnp.int32)
-    return u * sc.sx, s / sc.er, status, k, use, kp
+    return u * sc.sx, (s / sc.er)[:m0], status, k, use, kp
 
 
 # ---------------------------------------------------------------------- full-space checks
@@ -968,9 +979,17 @@ def _nullspace(qp: QP):
 
 def _reduce_generic(qp: QP):
     """(box, lift, ok) of a general QP: no equalities -> the QP itself (bounds as
-    bounds); else the null-space method, finite bounds becoming hard rows."""
+    bounds); else the null-space method, finite bounds becoming hard rows. A with as many
+    rows as variables (full rank: x fixed by A x = b, null(A) = {0}) gets a reduced
+    problem in one dummy variable y that x does not depend on (Z = 0, cost y^2/2), so
+    that the rows and bounds are still checked at x = xp (their rows 0 y <= h - G xp).
+    More rows than variables cannot be of full row rank: ValueError."""
     dtype = qp.P.dtype
     n, me = qp.P.shape[0], qp.A.shape[0]
+    if me > n:
+        raise ValueError(f"the generic JAX path needs A of full row rank: A has {me} rows "
+                         f"for {n} variables (remove the redundant equalities, or use "
+                         "solver='piqp')")
     if me == 0:
         box = (qp.P, qp.q, qp.G, jnp.where(jnp.isfinite(qp.h), qp.h, 1e30),
                jnp.where(jnp.isfinite(qp.lb), qp.lb, -1e30),
@@ -981,6 +1000,11 @@ def _reduce_generic(qp: QP):
     Pz = Z.T @ qp.P @ Z
     Pz = 0.5 * (Pz + Pz.T)
     qz = Z.T @ (qp.P @ xp + qp.q)
+    if nz == 0:                       # x = xp: a dummy variable, absent from x
+        nz = 1
+        Z = jnp.zeros((n, 1), dtype)
+        Pz = jnp.ones((1, 1), dtype)
+        qz = jnp.zeros(1, dtype)
     lbf = qp.lb > -_BIG
     ubf = qp.ub < _BIG
     Gz = jnp.concatenate([qp.G @ Z, Z, -Z], axis=0)
