@@ -1,0 +1,254 @@
+"""The deployment API (safewbc_jax.deploy): the motor map against the simulator's, start /
+step / reset and the counters, refused measurements, and the README example as written.
+
+One compiled squat controller (module fixture) serves most tests; a walking one checks that
+a refused measurement does not advance the gait."""
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safewbc_jax import barriers, deploy, statemap
+from safewbc_jax.deploy import Controller, Measurement, MotorMap
+from safewbc_jax.solvers.status import SolveStatus
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+@pytest.fixture(scope="module")
+def stand(sim_mj, ctrl_mj):
+    """(q, v) of the controller at the ``stand`` keyframe of the simulation model."""
+    import mujoco
+
+    d = mujoco.MjData(sim_mj)
+    mujoco.mj_resetDataKeyframe(sim_mj, d, sim_mj.key("stand").id)
+    mujoco.mj_forward(sim_mj, d)
+    q, v = statemap.build_state_map(sim_mj, ctrl_mj).to_controller(d.qpos, d.qvel)
+    return q.copy(), v.copy()
+
+
+@pytest.fixture(scope="module")
+def squat(stand):
+    ctl = Controller("squat")
+    ctl.start(*stand)
+    return ctl
+
+
+def _within_limits(ctl, cmd):
+    assert np.all(np.isfinite(cmd.u)) and np.all(np.isfinite(cmd.motor))
+    assert np.all(np.abs(cmd.motor) <= ctl.motors.motor_limit)
+    assert np.all(np.abs(cmd.u) <= np.asarray(ctl.model.torque_limit) * (1 + 1e-9))
+
+
+# -- no compile --------------------------------------------------------------------------
+
+def test_motor_map_matches_the_simulators_state_map(sim_mj, ctrl_mj):
+    """Built from the controller model and the published figures, the motor map gives the
+    simulator's commands: to 1e-12 within the limits (the same division). Beyond them it
+    clips to the published motor limits; the simulator's ctrlrange is the same figure
+    printed to 10 digits (13.557993625 -> 13.55799362), hence 1e-9 relative there."""
+    from safewbc_jax import modelgen
+
+    mm = MotorMap.build(ctrl_mj)
+    acts = modelgen.load_params()["actuators"]
+    assert mm.names == tuple(a["name"] for a in acts)
+    assert sorted(mm.u_index.tolist()) == list(range(ctrl_mj.nu))
+    np.testing.assert_allclose(mm.gear * mm.motor_limit, mm.joint_limit, rtol=1e-12)
+    sm = statemap.build_state_map(sim_mj, ctrl_mj)
+    sim_order = [sim_mj.actuator(n).id for n in mm.names]
+    lo, hi = sim_mj.actuator_ctrlrange[:, 0], sim_mj.actuator_ctrlrange[:, 1]
+    rng = np.random.default_rng(0)
+    u_lim = mm.joint_limit[np.argsort(mm.u_index)]    # controller actuator order
+    u = rng.uniform(-0.999, 0.999, (500, ctrl_mj.nu)) * u_lim
+    np.testing.assert_allclose(mm.to_motor(u), sm.to_ctrl(u)[:, sim_order], rtol=0, atol=1e-12)
+    u = rng.uniform(-2, 2, (500, ctrl_mj.nu)) * u_lim   # about half of them clipped
+    got, want = mm.to_motor(u), np.clip(sm.to_ctrl(u), lo, hi)[:, sim_order]
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=0)
+    clipped = np.abs(u[:, mm.u_index]) > mm.joint_limit
+    assert 0.3 < clipped.mean() < 0.7
+    np.testing.assert_array_equal(np.abs(got[clipped]), np.broadcast_to(mm.motor_limit,
+                                                                         got.shape)[clipped])
+
+
+def test_motor_map_refuses_figures_that_disagree_with_the_model(ctrl_mj):
+    from safewbc_jax import modelgen
+
+    figs = modelgen.load_params()
+    figs["actuators"][3] = {**figs["actuators"][3], "gear": 17.0}
+    with pytest.raises(ValueError, match="left-knee.*gear"):
+        MotorMap.build(ctrl_mj, figs)
+
+
+def test_check_state_names_the_reason(stand):
+    q, v = stand
+    assert deploy.check_state(q, v) == "ok"
+    assert "shape" in deploy.check_state(q[:36], v)
+    qn = q.copy()
+    qn[3:7] *= 1 + 2 * deploy.QUAT_TOL
+    assert "quaternion" in deploy.check_state(qn, v)
+    qn[3:7] = q[3:7] * (1 + 0.5 * deploy.QUAT_TOL)     # inside the tolerance
+    assert deploy.check_state(qn, v) == "ok"
+    vb = v.copy()
+    vb[0] = 1.1 * deploy.MAX_SPEED
+    assert "base speed" in deploy.check_state(q, vb)
+    vb = v.copy()
+    vb[20] = -0.99 * deploy.MAX_RATE
+    assert deploy.check_state(q, vb) == "ok"
+
+
+def test_controller_refuses_bad_options_and_start_states(stand):
+    with pytest.raises(ValueError, match="settle"):
+        Controller("squat", settle=0.5)
+    with pytest.raises(ValueError, match="speed"):
+        Controller("walk", speed=2.0)
+    with pytest.raises(ValueError, match="solver"):
+        Controller("squat", solver="osqp")
+    ctl = Controller("squat")
+    with pytest.raises(RuntimeError, match="start"):
+        ctl.step(Measurement(*stand, 0.0))
+    q = stand[0].copy()
+    q[5] = np.nan
+    with pytest.raises(ValueError, match="start state refused: q not finite"):
+        ctl.start(q, stand[1])
+
+
+def test_start_checks_theorem_1_before_compiling(stand):
+    """The paper's arm threshold 0.195 m makes the start unsafe in this model's base frame
+    (README): start refuses it naming h(x0), before anything compiles."""
+    ctl = Controller("arms")
+    ctl.params = ctl.params.replace(threshold={**ctl.params.threshold, "left_fist": 0.195})
+    with pytest.raises(barriers.PoleError, match="left_fist"):
+        ctl.start(*stand)
+    assert ctl.compile_s is None
+
+
+# -- the compiled squat controller ---------------------------------------------------------
+
+@pytest.mark.slow
+def test_start_step_reset_and_counters(squat, stand):
+    ctl = squat
+    ctl.reset()
+    assert ctl.compile_s > 0
+    assert (ctl.steps, ctl.qp_failed, ctl.fallbacks, ctl.bad_measurements) == (0, 0, 0, 0)
+    cmds = [ctl.step(Measurement(*stand, t=10.0 + k * ctl.control_dt)) for k in range(5)]
+    for c in cmds:
+        _within_limits(ctl, c)
+        assert (c.solve_status, c.fallback, c.measurement) == (SolveStatus.SOLVED, "none", "ok")
+        assert c.latency_us > 0
+        np.testing.assert_array_equal(c.motor, ctl.motors.to_motor(c.u))
+    assert np.any(cmds[0].u != 0)
+    assert ctl.record.tau == pytest.approx(4 * ctl.control_dt - ctl.scenario.settle)
+    assert (ctl.steps, ctl.qp_failed, ctl.fallbacks, ctl.bad_measurements) == (5, 0, 0, 0)
+    ctl.reset()
+    assert (ctl.steps, ctl.qp_failed, ctl.fallbacks, ctl.bad_measurements) == (0, 0, 0, 0)
+    # back to the state after start: the clock restarts, PIQP is set up afresh
+    again = [ctl.step(Measurement(*stand, t=10.0 + k * ctl.control_dt)) for k in range(2)]
+    for a, b in zip(again, cmds):
+        np.testing.assert_array_equal(a.u, b.u)
+
+
+def _bad(stand, case):
+    q, v = stand[0].copy(), stand[1].copy()
+    f = np.array([230.0, 240.0])
+    if case == "nan_q":
+        q[12] = np.nan
+    elif case == "inf_v":
+        v[7] = np.inf
+    elif case == "quaternion":
+        q[3:7] *= 1.01
+    elif case == "huge_velocity":
+        v[14] = 3000.0
+    elif case == "nan_sole_force":
+        f[1] = np.nan
+    return q, v, f
+
+
+REASONS = {"nan_q": "q not finite", "inf_v": "v not finite", "quaternion": "not unit",
+           "huge_velocity": "rad/s", "nan_sole_force": "sole_force"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(REASONS))
+def test_bad_measurement_holds_the_last_good_torque(squat, stand, case):
+    """Before any good step the command is zero; after one, the last good torque; either
+    way finite and within the motor limits, "held", the reason named, counted; the
+    clock does not advance (a good measurement at the same t is then accepted)."""
+    ctl = squat
+    ctl.reset()
+    q, v, f = _bad(stand, case)
+    c0 = ctl.step(Measurement(q, v, 0.0, f))
+    _within_limits(ctl, c0)
+    assert np.all(c0.u == 0) and np.all(c0.motor == 0)
+    assert (c0.fallback, c0.solve_status) == ("held", None)
+    assert REASONS[case] in c0.measurement, c0.measurement
+    assert ctl.record is None and ctl.bad_measurements == 1
+    good = ctl.step(Measurement(*stand, 0.0, np.array([230.0, 240.0])))
+    assert good.measurement == "ok" and np.any(good.u != 0)
+    c1 = ctl.step(Measurement(q, v, ctl.control_dt, f))
+    _within_limits(ctl, c1)
+    np.testing.assert_array_equal(c1.u, good.u)
+    np.testing.assert_array_equal(c1.motor, good.motor)
+    assert c1.fallback == "held" and REASONS[case] in c1.measurement
+    assert (ctl.bad_measurements, ctl.steps, ctl.qp_failed) == (2, 3, 0)
+    nxt = ctl.step(Measurement(*stand, ctl.control_dt))
+    assert nxt.measurement == "ok"
+    assert ctl.record.tau == pytest.approx(ctl.control_dt - ctl.scenario.settle)
+
+
+@pytest.mark.slow
+def test_time_that_does_not_advance_is_refused(squat, stand):
+    ctl = squat
+    ctl.reset()
+    ctl.step(Measurement(*stand, 1.0))
+    c = ctl.step(Measurement(*stand, 1.0))
+    assert c.fallback == "held" and "does not advance" in c.measurement
+    assert ctl.bad_measurements == 1
+
+
+@pytest.mark.slow
+def test_bad_measurement_does_not_advance_the_gait(stand):
+    """Walking: the gait leaves double support at the first good step with tau >= 0 (as
+    in the MuJoCo loop, touchdown and timing from the measurement that ends the step);
+    a refused measurement (sole forces missing, or NaN) leaves it where it is."""
+    from safewbc_jax.walking import BOTH, LEFT
+
+    ctl = Controller("walk", settle=1.0)
+    ctl.start(*stand)
+    f = np.array([235.0, 235.0])
+    n = int(round(ctl.scenario.settle / ctl.control_dt))
+    for k in range(n + 1):     # through tau = 0: the gait advances at the next good step
+        ctl.step(Measurement(*stand, k * ctl.control_dt, f))
+    assert ctl.gait.stance == BOTH and ctl.record.tau == pytest.approx(0.0, abs=1e-12)
+    for bad in (None, np.array([np.nan, 235.0])):
+        c = ctl.step(Measurement(*stand, (n + 1) * ctl.control_dt, bad))
+        _within_limits(ctl, c)
+        assert c.fallback == "held" and "sole_force" in c.measurement
+        assert ctl.gait.stance == BOTH
+    assert ctl.bad_measurements == 2
+    c = ctl.step(Measurement(*stand, (n + 1) * ctl.control_dt, f))
+    assert c.measurement == "ok" and ctl.gait.stance == LEFT and ctl.gait.tau_step == 0.0
+    _within_limits(ctl, c)
+    ctl.reset()
+    assert ctl.gait.stance == BOTH and ctl.steps == 0
+
+
+# -- the README example ----------------------------------------------------------------------
+
+def readme_example() -> str:
+    text = README.read_text()
+    section = text[text.index("## Deployment API"):]
+    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+
+
+@pytest.mark.slow
+def test_readme_example_runs_as_written(capsys):
+    ns = {}
+    exec(compile(readme_example(), "README.md (Deployment API)", "exec"), ns)
+    ctl, cmd, d = ns["ctl"], ns["cmd"], ns["d"]
+    assert ctl.steps == 1000 and ctl.qp_failed == 0 and ctl.bad_measurements == 0
+    assert cmd.measurement == "ok" and cmd.fallback == "none"
+    _within_limits(ctl, cmd)
+    assert d.qpos[2] > 0.8      # standing
+    assert "failed QPs" in capsys.readouterr().out
