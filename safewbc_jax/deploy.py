@@ -93,14 +93,17 @@ class MotorMap:
     @classmethod
     def build(cls, ctrl_model=None, figures: dict | None = None) -> "MotorMap":
         """From the controller MjModel (``paths.controller_xml()``) and the published
-        figures (``modelgen.load_params()``); raises ValueError where the two disagree."""
-        import mujoco
+        figures the models were written from (``paths.figures_json()``, installed with the
+        package); raises ValueError where the two disagree."""
+        import json
 
-        from safewbc_jax import modelgen
+        import mujoco
 
         mc = (mujoco.MjModel.from_xml_path(str(paths.controller_xml())) if ctrl_model is None
               else ctrl_model)
-        acts = (modelgen.load_params() if figures is None else figures)["actuators"]
+        if figures is None:
+            figures = json.loads(paths.figures_json().read_text())
+        acts = figures["actuators"]
         idx = []
         for a in acts:
             i = mujoco.mj_name2id(mc, mujoco.mjtObj.mjOBJ_ACTUATOR, a["name"])

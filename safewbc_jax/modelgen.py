@@ -59,6 +59,12 @@ def find_params_file() -> Path:
     candidates = [Path(env)] if env else []
     candidates += [REPO.parent / "shared" / "digit" / "digit_v3_parameters.json",
                    MODELS / "digit_v3_parameters.json"]
+    try:   # an installed package keeps its copy in safewbc_jax/models
+        from safewbc_jax import paths
+
+        candidates.append(paths.figures_json())
+    except FileNotFoundError:
+        pass
     for c in candidates:
         if c.is_file():
             return c

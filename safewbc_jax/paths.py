@@ -26,3 +26,9 @@ def sim_xml() -> Path:
 
 def controller_xml() -> Path:
     return models_dir() / "digit_controller.xml"
+
+
+def figures_json() -> Path:
+    """The published Digit figures the models were written from (``models/``, installed
+    with the package)."""
+    return models_dir() / "digit_v3_parameters.json"

@@ -252,3 +252,19 @@ def test_readme_example_runs_as_written(capsys):
     _within_limits(ctl, cmd)
     assert d.qpos[2] > 0.8      # standing
     assert "failed QPs" in capsys.readouterr().out
+
+
+def test_motor_map_needs_only_the_installed_package_files(monkeypatch):
+    """An installed package (pip install .) has no repository around it: the motor map
+    reads the figures shipped in safewbc_jax/models, not modelgen's search for the
+    figures to regenerate the models from (which found nothing there and broke
+    `safewbc run` after a non-editable install)."""
+    from safewbc_jax import modelgen, paths
+
+    def nowhere(*a, **k):
+        raise FileNotFoundError("digit_v3_parameters.json not found (test)")
+
+    monkeypatch.setattr(modelgen, "find_params_file", nowhere)
+    monkeypatch.setattr(modelgen, "load_params", nowhere)
+    mm = MotorMap.build()
+    assert len(mm.names) == 20 and paths.figures_json().is_file()
