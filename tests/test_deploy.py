@@ -268,3 +268,23 @@ def test_motor_map_needs_only_the_installed_package_files(monkeypatch):
     monkeypatch.setattr(modelgen, "load_params", nowhere)
     mm = MotorMap.build()
     assert len(mm.names) == 20 and paths.figures_json().is_file()
+
+
+def test_installed_package_finds_its_files(tmp_path):
+    """Outside the repository (cwd elsewhere: the installed package, as after the README's
+    'pip install .'), the deployment pieces find the models and the figures."""
+    import subprocess
+    import sys
+
+    code = ("import safewbc_jax, json; from safewbc_jax import deploy, paths, scenarios; "
+            "mm = deploy.MotorMap.build(); scenarios.get_scenario('walk'); "
+            "print(json.dumps([safewbc_jax.__file__, str(paths.figures_json()), len(mm.names)]))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                         text=True)
+    if "No module named 'safewbc_jax'" in out.stderr:
+        pytest.skip("safewbc_jax is not installed in this environment")
+    assert out.returncode == 0, out.stderr[-2000:]
+    import json
+
+    pkg, figures, n = json.loads(out.stdout.strip().splitlines()[-1])
+    assert n == 20 and Path(figures).is_file(), (pkg, figures)
