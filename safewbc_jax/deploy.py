@@ -324,11 +324,9 @@ class Controller:
             raise ValueError(f"control_dt must be positive, got {control_dt}")
         self.walking = sc.desired_fn is not None
         if self.walking:
-            from safewbc_jax.walking import reachable_speeds
+            from safewbc_jax.walking import check_speed
 
-            lo, hi = reachable_speeds()
-            if not lo <= speed <= hi:
-                raise ValueError(f"speed {speed} m/s: the ALIP planner reaches [{lo:.3f}, {hi:.3f}]")
+            speed = check_speed(speed)
         if isinstance(solver, str) and solver != "piqp":
             raise ValueError(f"solver {solver!r}: 'piqp' or a PiqpSolver-like object (the JAX "
                              "solver runs batched, batch.rollout)")

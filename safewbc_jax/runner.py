@@ -83,15 +83,9 @@ def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=
     if speed is not None and not walking:
         raise ValueError(f"--speed applies to the walking scenarios {list(WALKING)}, not {name!r}")
     if walking:
-        from safewbc_jax.walking import STEP_T, STEP_X, reachable_speeds
+        from safewbc_jax.walking import check_speed
 
-        speed = 0.2 if speed is None else _finite("--speed", speed)
-        lo, hi = reachable_speeds()
-        if not lo <= speed <= hi:
-            raise ValueError(
-                f"--speed {speed:g}: the ALIP planner at T = {STEP_T:g} s reaches mean forward "
-                f"speeds in [{lo:.3f}, {hi:.3f}] m/s (steps of {STEP_X[0]:g} to {STEP_X[1]:g} m "
-                "per period); the walks in the README were run at 0.2 m/s")
+        speed = 0.2 if speed is None else check_speed(_finite("--speed", speed), "--speed")
     if name == "push" and push is None:
         push = PAPER_PUSH
     if push is None:

@@ -79,6 +79,19 @@ def reachable_speeds(T: float = STEP_T) -> tuple[float, float]:
     return STEP_X[0] / T, STEP_X[1] / T
 
 
+def check_speed(speed, option: str = "speed") -> float:
+    """``speed`` as a float, or ValueError naming ``option`` and the planner's reach
+    (``reachable_speeds``) when it is not a finite speed the planner can command."""
+    lo, hi = reachable_speeds()
+    s = float(speed)
+    if not lo <= s <= hi:    # NaN fails too
+        raise ValueError(
+            f"{option} {s:g}: the ALIP planner at T = {STEP_T:g} s reaches mean forward "
+            f"speeds in [{lo:.3f}, {hi:.3f}] m/s (steps of {STEP_X[0]:g} to {STEP_X[1]:g} m "
+            "per period); the walks in the README were run at 0.2 m/s")
+    return s
+
+
 def _swing_select(domain, left_val, right_val):
     """The swing foot's value: in left stance the right foot swings."""
     stance = domain["stance"]
