@@ -13,7 +13,7 @@ For each batch size B:
                 steps, timed on a second call.
 and once:
   single_loop   the deployment step of the same scenario without the run's logging:
-                CompiledController.step (jitted terms, assembly and elimination; PIQP) and
+                deploy.Controller.step (the shared control step; PIQP) and
                 mj_step, one robot, pinned to one core as `safewbc run` is (compile
                 excluded).
 
@@ -31,39 +31,32 @@ import time
 
 
 def single_robot_loop(n_steps: int, settle: float) -> tuple[float, float]:
-    """The deployment step without the run's logging: state map, CompiledController.step
-    (jitted terms + assembly + elimination, PIQP), motor commands, mj_step. Returns
-    (robot-steps/s after the first step, p50 controller step in us)."""
-    import jax.numpy as jnp
+    """The deployment step without the run's logging: state map, ``deploy.Controller.step``
+    (the shared control step with PIQP), motor commands, mj_step. Returns (robot-steps/s
+    after the first step, p50 controller step in us)."""
+    import os
+    import time
+
     import mujoco
     import numpy as np
 
-    from safewbc_jax import controller, scenarios
-    from safewbc_jax.scenarios import start_state
-    from safewbc_jax.sim.mujoco_loop import CompiledController, load_at_stand
-
-    import os
+    from safewbc_jax.deploy import Controller, Measurement
+    from safewbc_jax.sim.mujoco_loop import load_at_stand
 
     cpus = os.sched_getaffinity(0)
     os.sched_setaffinity(0, {max(cpus)})     # pinned to one core, as `safewbc run` is
-    ms, _, model, sm, d = load_at_stand()
-    sc = scenarios.get_scenario("arms")
-    params = sc.default_params()
-    q0, _ = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
-    start = start_state(model, q0)
-    start["y0"] = controller.output_start_values(model, sc, q0)
-    ctl = CompiledController(model, sc)
-    in_contact = jnp.asarray(sc.in_contact)
-    lo, hi = ms.actuator_ctrlrange[:, 0], ms.actuator_ctrlrange[:, 1]
+    ms, _, _, sm, d = load_at_stand()
+    ctl = Controller("arms", settle=settle)
+    ctl.start(*sm.to_controller(d.qpos, d.qvel))
+    motor_ids = np.array([ms.actuator(n).id for n in ctl.motors.names])
     lat = []
     for k in range(n_steps):
         if k == 1:
             t0 = time.perf_counter()
-        q, v = (jnp.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
-        u, _, _, _, (tq, ts) = ctl.step(params, q, v, jnp.asarray(k * 1e-3 - settle), start,
-                                        in_contact)
-        lat.append(tq + ts)
-        d.ctrl[:] = np.clip(sm.to_ctrl(u), lo, hi)
+        q, v = sm.to_controller(d.qpos, d.qvel)
+        cmd = ctl.step(Measurement(q, v, k * 1e-3))
+        lat.append(cmd.latency_us)
+        d.ctrl[motor_ids] = cmd.motor
         mujoco.mj_step(ms, d)
     rate = (n_steps - 1) / (time.perf_counter() - t0)
     os.sched_setaffinity(0, cpus)

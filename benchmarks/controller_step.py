@@ -5,9 +5,12 @@ step and side by side: the robot terms (jitted), the QP assembly (jitted, given 
 terms), the exact elimination of the equality rows (numpy), the PIQP solve of the
 reduced 20-variable QP (the deployment default) and, for comparison, the PIQP solve of
 the full 78-variable QP. The pieces are separate calls here (the elimination in numpy),
-so their sum is above the fused step; the fused step itself, as ``safewbc run`` records
-it in step_latency_us (``CompiledController.step``: one jitted call for terms, assembly
-and elimination, then PIQP), is timed at every step too, on the same state.
+so their sum is above the fused step; the deployment step itself (``deploy.Controller.step``,
+which drives the robot here: one jitted ``control_step.prepare`` with the elimination,
+PIQP, ``control_step.conclude`` dispatched without waiting) is timed at every step too,
+on the same measurement: as ``safewbc run`` records it in step_latency_us (prepare +
+solve) and as the caller sees it (the whole ``step``, measurement check and motor map
+included).
 
     python benchmarks/controller_step.py [--scenario squat] [--steps 2000] [--json]
 """
@@ -39,7 +42,8 @@ def main(argv=None) -> dict:
     import numpy as np
 
     from safewbc_jax import controller, scenarios
-    from safewbc_jax.sim.mujoco_loop import CompiledController, load_at_stand
+    from safewbc_jax.deploy import Controller, Measurement
+    from safewbc_jax.sim.mujoco_loop import load_at_stand
     from safewbc_jax.packing import Packer
     from safewbc_jax.solvers import reduce
     from safewbc_jax.solvers.piqp_path import PiqpSolver
@@ -57,10 +61,13 @@ def main(argv=None) -> dict:
     asm_fn = jax.jit(lambda flat_terms, q, v, tau: pk_qp.pack(controller.build_qp(
         model, sc, params, flat_terms, q, v, tau, start, ic)))
     solver_red, solver_full = PiqpSolver(), PiqpSolver()
-    fused = CompiledController(model, sc)
+    ctl = Controller(sc, params)
+    ctl.start(q0, d.qvel[sm.qvel_idx])
+    motor_ids = np.array([ms.actuator(n).id for n in ctl.motors.names])
     n_sub = int(round(1e-3 / ms.opt.timestep))
     rec = {k: [] for k in ("terms", "assembly", "reduce", "solve_reduced", "solve_full",
-                           "iters_reduced", "iters_full", "fused_step", "fused_jit")}
+                           "iters_reduced", "iters_full", "fused_step", "fused_jit",
+                           "command")}
     t_compile = time.perf_counter()
     for k in range(args.steps):
         tau = k * 1e-3 - sc.settle
@@ -80,13 +87,12 @@ def main(argv=None) -> dict:
         t4 = time.perf_counter()
         x_full, info_f = solver_full.solve(qpm)
         t5 = time.perf_counter()
-        x = rmap.x0 + rmap.N @ z if z is not None else x_full
-        _, _, _, _, (t_jit, t_sol) = fused.step(params, jnp.asarray(q), jnp.asarray(v),
-                                                jnp.asarray(tau), start, ic)
-        rec["fused_step"].append(t_jit + t_sol)
-        rec["fused_jit"].append(t_jit)
-        u = x[model.nv:model.nv + model.nu]
-        d.ctrl[:] = np.clip(sm.to_ctrl(u), ms.actuator_ctrlrange[:, 0], ms.actuator_ctrlrange[:, 1])
+        cmd = ctl.step(Measurement(q, v, k * 1e-3))
+        hr = ctl.record
+        rec["fused_step"].append(hr.t_qp + hr.t_solve)
+        rec["fused_jit"].append(hr.t_qp)
+        rec["command"].append(cmd.latency_us)
+        d.ctrl[motor_ids] = cmd.motor
         for _ in range(n_sub):
             mujoco.mj_step(ms, d)
         for key, val in zip(("terms", "assembly", "reduce", "solve_reduced", "solve_full"),
@@ -106,6 +112,7 @@ def main(argv=None) -> dict:
         "step_us": stats(step),
         "fused_step_us": stats(arr["fused_step"]),
         "fused_jit_us": stats(arr["fused_jit"]),
+        "command_us": stats(arr["command"]),
         "breakdown_us": {k: stats(arr[k]) for k in ("terms", "assembly", "reduce", "solve_reduced")},
         "step_full_qp_us": stats(step_full),
         "solve_full_qp_us": stats(arr["solve_full"]),
@@ -123,7 +130,9 @@ def main(argv=None) -> dict:
               f"p99 {res['step_us']['p99']} us")
         print(f"  fused step as safewbc run times it (one jitted call incl. the elimination, "
               f"then PIQP): p50 {res['fused_step_us']['p50']} us, p99 {res['fused_step_us']['p99']} us"
-              f" (jitted part p50 {res['fused_jit_us']['p50']} us)")
+              f" (jitted part p50 {res['fused_jit_us']['p50']} us); the whole "
+              f"Controller.step: p50 {res['command_us']['p50']} us, p99 "
+              f"{res['command_us']['p99']} us")
         for k, v in res["breakdown_us"].items():
             print(f"    {k:<14s} p50 {v['p50']:8.1f} us   p99 {v['p99']:8.1f} us")
         print(f"  PIQP on the full 78-variable QP: p50 {res['solve_full_qp_us']['p50']} us "

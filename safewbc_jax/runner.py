@@ -12,6 +12,7 @@ from safewbc_jax import plots, scenarios
 from safewbc_jax.metrics import summarize
 from safewbc_jax.params import apply_overrides, load_overrides
 from safewbc_jax.progress import Progress
+from safewbc_jax.push import PUSH_AT, PUSH_FOR, Push
 
 
 def check_video_backend(path: str) -> None:
@@ -36,13 +37,6 @@ def check_video_backend(path: str) -> None:
             "'apt-get install libosmesa6' with MUJOCO_GL=osmesa.") from None
 
 
-# Default push start (s after walking starts): 0.05 s into the fourth step, a right-stance
-# step of the default walk, where a push to the right (-y) carries the CoM over the stance
-# foot and the planner pulls the left swing foot in towards it (the paper's collision case).
-PUSH_AT = 2.55
-
-
-PUSH_FOR = 0.15          # s: default push duration
 PAPER_PUSH = (0.0, -30.0, 0.0)   # N: the paper's lateral push (to the right)
 # Ranges of the run options (safewbc run). A run logs every control step in memory (about
 # 1 kB per step), so 600 s at 1 kHz is ~0.6 GB; a push above 1,000 N for the default
@@ -135,8 +129,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")
     cfg = RunConfig(duration=duration, control_dt=control_dt, barrier_on=barrier, settle=settle,
                     record_qps_every=record_qps_every, speed=speed,
-                    push_force=None if push is None else tuple(float(f) for f in push),
-                    push_at=push_at, push_for=push_for)
+                    push=None if push is None else Push.single(push, push_at, push_for))
     # a tqdm bar of the control steps on stderr (one line per phase off a terminal)
     bar = Progress(f"[safewbc] {name}", unit="steps", phase="compiling", quiet=quiet)
     try:
@@ -146,10 +139,11 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
         bar.close()
         raise
     bar.close("fell" if info["fell"] else "done")
-    metrics = summarize(log, info, name, control_dt)
+    metrics = summarize(info["metrics"], info, name, control_dt)
     metrics["barrier_on"] = bool(barrier)
     if push is not None:
-        metrics["push"] = {"force_N": list(cfg.push_force), "at_s": push_at, "for_s": push_for}
+        metrics["push"] = {"force_N": [float(f) for f in push], "at_s": push_at,
+                           "for_s": push_for}
     metrics["threshold"] = {k: float(v) for k, v in params.threshold.items()}
     metrics["poles"] = {k: np.asarray(v).tolist() for k, v in params.poles.items()}
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -313,7 +313,7 @@ def make_scenario(name, duration, barrier):
 
 
 # --------------------------------------------------------------------------------------
-# The gait state machine (host: Gait in the MuJoCo loop; jax: the batched rollouts)
+# The gait state machine (advanced by control_step.prepare in every loop)
 # --------------------------------------------------------------------------------------
 
 class GaitState(NamedTuple):
@@ -338,7 +338,7 @@ class GaitState(NamedTuple):
 
 def gait_step(g: GaitState, tau, dt, sole_left, sole_right, swing_force, weight, xp=np):
     """One control step of the gait, as a pure function of arrays (``xp`` numpy or
-    jax.numpy; the deployment loop's ``Gait`` and the batched rollouts share it).
+    jax.numpy; ``control_step.prepare`` runs it in JAX, ``Gait`` with numpy).
     Returns (new GaitState, True where a new step began).
 
     Walking starts at tau = 0 in left stance. A step ends at touchdown of the swing
@@ -398,8 +398,9 @@ def first_step_domain(model, q, v_des=0.2):
 
 @dataclasses.dataclass
 class Gait:
-    """Domain switching of the deployment loop (host side): a ``GaitState`` advanced by
-    ``gait_step``, with the commands."""
+    """A host-side (numpy) ``GaitState`` advanced by ``gait_step``, with the commands: for
+    scripts and tests that step the gait by hand. The controller itself carries a
+    ``GaitState`` in ``control_step.ControllerState`` and advances it in ``prepare``."""
 
     v_des: float = 0.2
     step_width: float = STEP_WIDTH

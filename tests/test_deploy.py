@@ -288,3 +288,40 @@ def test_installed_package_finds_its_files(tmp_path):
 
     pkg, figures, n = json.loads(out.stdout.strip().splitlines()[-1])
     assert n == 20 and Path(figures).is_file(), (pkg, figures)
+
+
+# -- the control step's own refusal (the batched path's; the host check comes first here) --
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(REASONS) + ["stale_time"])
+def test_control_step_refuses_in_the_graph(squat, stand, case):
+    """The jitted control step refuses a bad measurement by itself (the batched path has no
+    host check before it): after one good step, a bad measurement fed straight to
+    ``control_step.prepare`` / ``conclude`` gives ok False, the last good torque (finite,
+    within the motor limits) even when the solver hands back a finite x, one count in
+    ``bad``, and leaves the clock and the last good state where they were."""
+    from safewbc_jax.control_step import Solution
+
+    ctl = squat
+    ctl.reset()
+    good = ctl.step(Measurement(*stand, 0.0, np.zeros(2)))
+    st0 = ctl.state
+    if case == "stale_time":   # a good state at the time of the last step
+        (q, v), f, t = stand, np.zeros(2), 0.0
+    else:
+        (q, v, f), t = _bad(stand, case), ctl.control_dt
+    st, prep, _ = ctl._prepare(ctl.params, ctl.start_data, ctl.run_values, st0,
+                               Measurement(q, v, t, f))
+    assert not bool(prep.ok)
+    n = ctl.last_qp().P.shape[0]
+    for x in (np.full(n, np.nan), np.ones(n)):   # a failed solve, a finite wrong answer
+        sol = Solution(x, np.int32(0), np.int32(0), np.int32(3), np.float64(0.0))
+        st1, packed = ctl._conclude(ctl.run_values, st, prep, sol)
+        rec = ctl._unpack_out(packed)[0]
+        np.testing.assert_array_equal(np.asarray(rec.u), good.u)
+        motor = ctl.motors.to_motor(np.asarray(rec.u))
+        assert np.all(np.isfinite(motor)) and np.all(np.abs(motor) <= ctl.motors.motor_limit)
+        assert int(st1.acc.bad) == 1 and int(st1.acc.steps) == 1
+        assert float(st1.prev_t) == float(st0.prev_t) == 0.0
+        np.testing.assert_array_equal(np.asarray(st1.last_q), np.asarray(st0.last_q))
+        np.testing.assert_array_equal(np.asarray(st1.last_u), good.u)

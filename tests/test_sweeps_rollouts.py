@@ -140,7 +140,11 @@ def test_same_seed_same_table_on_one_and_two_devices(sweeps):
     for name in ta.column_names:
         x = ta.column(name).to_numpy(zero_copy_only=False)
         y = tb.column(name).to_numpy(zero_copy_only=False)
-        if x.dtype.kind == "f":
+        if name == "eq_residual_max":
+            # the equality residual is round-off itself (~3e-11, measured 2.3e-11 against
+            # 2.9e-11 on one and two devices): both below the solver's 1e-8 acceptance
+            assert np.all(x < 1e-8) and np.all(y < 1e-8), (x, y)
+        elif x.dtype.kind == "f":
             # same inputs, same programme up to the partitioning: agreement to rounding
             np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12, err_msg=name)
         else:

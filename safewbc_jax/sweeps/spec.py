@@ -65,12 +65,14 @@ from pathlib import Path
 
 import numpy as np
 
+from safewbc_jax.push import PUSH_AT, PUSH_FOR
+
 SECTIONS = ("sweep", "params", "grid", "push", "perturb", "tune")
 SWEEP_KEYS = {"scenario": str, "barrier": bool, "duration": float, "settle": float,
               "control_dt": float, "repeats": int, "seed": int, "batch": int,
               "violation_tol": float, "target": str, "description": str}
 PUSH_KEYS = ("magnitude", "direction", "at", "duration")
-PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": 1.0, "duration": 0.15}
+PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": PUSH_AT, "duration": PUSH_FOR}
 PERTURB_KEYS = ("base_linear", "base_angular", "joints")
 TUNE_KEYS = {"rounds": int, "points": int, "shrink": float, "pole_min": float,
              "pole_max": float, "objective": list, "barrier": str, "equal_poles": bool}

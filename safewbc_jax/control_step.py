@@ -1,0 +1,375 @@
+"""The one control step that every loop calls: the MuJoCo loop, the batched MJX rollouts
+and a real robot (``deploy.Controller``).
+
+    state, prep, qp = prepare(ctx, params, start, run, state, meas)  # measurement -> QP
+    sol             = <a QP solver>(qp)                   # jax_qp in JAX, PIQP on the host
+    state, out      = conclude(ctx, run, state, prep, sol)  # torque, motors, record, metrics
+
+``prepare`` and ``conclude`` are pure JAX functions of typed pytrees; the QP between them is
+the seam to the solvers. The batched path composes the three in one traced step
+(``step_jax``); the single-robot path jits ``prepare`` and ``conclude`` apart and runs PIQP
+between them on the host. Nothing in either loop decides anything about control:
+
+* the measurement check (``state_ok``): a refused measurement holds the last good torque,
+  does not advance the gait or the clock, and is counted (``bad_measurements``);
+* the clock: tau = (t - t_first) - settle, from the first good measurement;
+* walking: the gait (``walking.gait_step``) advanced over the control periods since the last
+  good step, from the soles' normal forces of the measurement and the soles' positions by
+  the controller's forward kinematics of q; the domain; the swing leg's rates with rigid
+  springs (``walking.rigid_spring_velocity``);
+* the QP (``controller.robot_terms``, ``controller.build_qp``);
+* the torque: the solution's u, or the last good u where the QP failed (``hold_torque``);
+  the motor torques in the robot's motor order (``MotorArrays.to_motor``);
+* the metrics (``metrics.control_accumulate``) and the fall test (``fallen``).
+
+What stays per simulator is sensing (its data to a ``Measurement``) and pushing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from safewbc_jax import barriers, contacts, controller, metrics, robot, scenarios, walking
+
+FALL_HEIGHT = 0.55  # m: base below this counts as a fall
+# Measurement bounds. |quat| is 1 to ~1e-15 from any estimator that normalises; 1e-3 is far
+# above that and far below an error that changes the controller's rotation noticeably.
+QUAT_TOL = 1e-3
+# Angular rates (joints and base, rad/s) and base speed (m/s): in the MuJoCo runs the
+# fastest joint peaks at ~7 rad/s (knees, walking at 0.2 m/s; undamped springs and
+# touchdowns included) and the base at 0.4 m/s; a humanoid's joints and a fall stay well
+# within 100 rad/s and 20 m/s, so an estimate beyond them is a fault, not a motion.
+MAX_RATE = 100.0
+MAX_SPEED = 20.0
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["q", "v", "sole_force", "t"],
+                   meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class Measurement:
+    """What the robot's estimator hands over each control step (README, Conventions):
+    q (37,), v (36,), the soles' normal forces on the floor (2,) in N (left, right; None is
+    allowed in double-support scenarios), and the time stamp t in s (any clock that
+    advances; the controller's clock starts at the first good measurement)."""
+
+    q: np.ndarray
+    v: np.ndarray
+    t: float
+    sole_force: np.ndarray | None = None
+
+
+def state_ok(q, v, xp=np):
+    """True where (q, v) can be a state of the robot: finite, the base quaternion of unit
+    length within QUAT_TOL, every angular rate within MAX_RATE and the base speed within
+    MAX_SPEED (a NaN fails every comparison)."""
+    n2 = xp.sum(q[3:7] ** 2)
+    return (xp.isfinite(xp.sum(q)) & xp.isfinite(xp.sum(v))
+            & (xp.abs(xp.sqrt(n2) - 1.0) <= QUAT_TOL)
+            & (xp.sum(v[:3] ** 2) <= MAX_SPEED ** 2) & (xp.max(xp.abs(v[3:])) <= MAX_RATE))
+
+
+def fallen(q, v, xp=np):
+    """The fall test, on a measurement: a non-finite state, or the base below FALL_HEIGHT
+    (q[2], the floating base's height)."""
+    finite = xp.isfinite(xp.sum(q)) & xp.isfinite(xp.sum(v))
+    return ~finite | (q[2] < FALL_HEIGHT)
+
+
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["u_index", "gear", "motor_limit"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class MotorArrays:
+    """The motor map as arrays (``deploy.MotorMap``): index of each motor's torque in u,
+    gear ratio, motor-side torque limit, in the robot's motor order."""
+
+    u_index: np.ndarray
+    gear: np.ndarray
+    motor_limit: np.ndarray
+
+    def to_motor(self, u, xp=np):
+        """Joint torques u (controller actuator order) -> motor torques u / gear, in motor
+        order, clipped to the motor limits."""
+        m = u[..., self.u_index] / self.gear
+        return xp.clip(m, -self.motor_limit, self.motor_limit)
+
+
+def hold_torque(x, usable, last_u, nv, nu, xp=np):
+    """The torque to apply: the solution's u where the solve is usable, else the last good
+    u (the policy of every loop)."""
+    return xp.where(usable, x[nv:nv + nu], last_u)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Context:
+    """What a control step is compiled for (static: hashed by identity): the controller
+    model, the scenario, the A-ECBF rows on or off, the control period, the motor map,
+    the robot's weight (N, the gait's early-touchdown test)."""
+
+    model: robot.RobotModel
+    scenario: object
+    barrier_on: bool
+    control_dt: float
+    motors: MotorArrays
+
+    @property
+    def walking(self) -> bool:
+        return self.scenario.desired_fn is not None
+
+    def __post_init__(self):
+        # evaluated here, eagerly: under a jit trace jnp operations on the model's constants
+        # are traced too
+        object.__setattr__(self, "weight",
+                           float(-self.model.gravity[2] * self.model.total_mass))
+
+
+def schedule(scenario, duration=None, settle=None, control_dt=1e-3, what=""):
+    """(control steps, settle s, duration s) of a run: the scenario's defaults where None;
+    raises ValueError, naming ``what`` + the option, for a settle shorter than the
+    reference blend, a duration or a control period that is not a positive number."""
+    settle = scenario.settle if settle is None else float(settle)
+    duration = scenario.duration if duration is None else float(duration)
+    if not (np.isfinite(control_dt) and control_dt > 0):
+        raise ValueError(f"{what}control_dt = {control_dt!r}: must be a positive number")
+    if not (np.isfinite(duration) and duration > 0):
+        raise ValueError(f"{what}duration = {duration!r}: must be a positive number")
+    if not (np.isfinite(settle) and settle >= scenario.blend):
+        raise ValueError(f"{what}settle = {settle}: must cover the reference blend "
+                         f"({scenario.blend} s)")
+    return int(round((settle + duration) / control_dt)), settle, duration
+
+
+class RunValues(NamedTuple):
+    """Run-time values of a control step (traced: runs that differ in them share a
+    compile): the settle time (s), the walking speed command (m/s), and the time after
+    the first measurement (s) at which the second half of the motion begins, where
+    ``avg_forward_speed`` is measured from (negative: not measured)."""
+
+    settle: jax.Array
+    speed: jax.Array
+    t_half: jax.Array
+
+
+def start_data(model, scenario, q) -> dict:
+    """The references' start data, measured at the start pose q (``scenarios.start_state``,
+    the outputs' start values; walking: ``walking.walking_start``). The settle time is the
+    run's (``RunValues``), added by ``prepare``."""
+    q = jnp.asarray(q)
+    start = scenarios.start_state(model, q)
+    start["y0"] = controller.output_start_values(model, scenario, q)
+    if scenario.desired_fn is not None:
+        start.update(walking.walking_start(model, q, start, scenario.blend))
+    return start
+
+
+class ControllerState(NamedTuple):
+    """What the controller carries from one step to the next: the gait; the last good
+    torque, state and time; the clock's origin (NaN before the first good measurement);
+    the metric accumulators (``metrics.ControlAcc``)."""
+
+    gait: walking.GaitState
+    last_u: jax.Array
+    last_q: jax.Array
+    last_v: jax.Array
+    t0: jax.Array
+    prev_t: jax.Array
+    prev_tau: jax.Array
+    acc: metrics.ControlAcc
+
+
+def init_state(ctx: Context, q, v, xp=jnp, dtype=jnp.float64) -> ControllerState:
+    """The state before the first step, at the start state (q, v)."""
+    sc, model = ctx.scenario, ctx.model
+    nan = xp.asarray(np.nan, dtype)
+    return ControllerState(walking.GaitState.standing(xp, dtype), xp.zeros(model.nu, dtype),
+                           xp.asarray(q, dtype), xp.asarray(v, dtype), nan, nan, nan,
+                           metrics.control_init(sc, xp, dtype))
+
+
+class Solution(NamedTuple):
+    """A solver's answer to the QP of ``prepare``: x (NaN where failed), SolveStatus code,
+    fallback code (``jax_qp.FALLBACK_*``), iterations, max |A x - b| (NaN where failed)."""
+
+    x: jax.Array
+    status: jax.Array
+    fallback: jax.Array
+    iterations: jax.Array
+    eq_residual: jax.Array
+
+
+class Prepared(NamedTuple):
+    """``prepare``'s output: whether the measurement was accepted, the state and time the
+    QP was built at (v with the rigid swing-leg rates), the domain (walking; None else),
+    and the QP's aux (output values and references, barrier values). The QP itself is
+    returned beside it (it goes to the solver, not to ``conclude``)."""
+
+    ok: jax.Array
+    q: jax.Array
+    v: jax.Array
+    t: jax.Array
+    tau: jax.Array
+    domain: dict | None
+    aux: dict
+
+
+def prepare(ctx: Context, params, start, run: RunValues, state: ControllerState,
+            meas: Measurement):
+    """Measurement -> QP (module docstring). Returns (state with the gait advanced,
+    Prepared, the QP).
+    A refused measurement builds the QP at the last good state (its result is not used)."""
+    model, sc = ctx.model, dataclasses.replace(ctx.scenario, settle=run.settle)
+    q_in, v_in = jnp.asarray(meas.q), jnp.asarray(meas.v)
+    dtype = q_in.dtype
+    force = jnp.zeros(2, dtype) if meas.sole_force is None else jnp.asarray(meas.sole_force, dtype)
+    t = jnp.asarray(meas.t, dtype)
+    started = jnp.isfinite(state.t0)
+    ok = (state_ok(q_in, v_in, jnp) & jnp.all(jnp.isfinite(force)) & jnp.isfinite(t)
+          & (~started | (t > state.prev_t)))
+    q = jnp.where(ok, q_in, state.last_q)
+    v = jnp.where(ok, v_in, state.last_v)
+    t0 = jnp.where(started, state.t0, t)
+    t = jnp.where(ok, t, state.prev_t)
+    tau = (t - t0) - run.settle
+    gait, domain = state.gait, None
+    if ctx.walking:
+        dt = ctx.control_dt
+        periods = jnp.maximum(1.0, jnp.round((t - state.prev_t) / dt))
+        swing = jnp.where(gait.stance > 0, force[1], force[0])
+        sole_l = robot.frame_pose(model, q, "left-sole")[0]
+        sole_r = robot.frame_pose(model, q, "right-sole")[0]
+        new, _ = walking.gait_step(gait, state.prev_tau, periods * dt, sole_l, sole_r, swing,
+                                   ctx.weight, xp=jnp)
+        advance = ok & started
+        gait = jax.tree_util.tree_map(lambda a, b: jnp.where(advance, a, b), new, gait)
+        domain = walking.gait_domain(gait, jnp.zeros((), dtype), run.speed,
+                                     jnp.asarray(walking.STEP_WIDTH, dtype), xp=jnp)
+        v = walking.rigid_spring_velocity(model, q, v, domain["stance"])
+        start = {**start, "settle": run.settle}
+    terms = controller.robot_terms(model, sc, q, v, domain)
+    qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, start,
+                                   jnp.asarray(sc.in_contact, dtype),
+                                   barrier_on=ctx.barrier_on, domain=domain)
+    state = state._replace(gait=gait, t0=jnp.where(ok, t0, state.t0))
+    return state, Prepared(ok, q, v, t, tau, domain, aux), qpm
+
+
+class Output(NamedTuple):
+    """``conclude``'s output: joint torques u (controller actuator order), motor torques
+    (the robot's motor order), and this step's record (``StepRecord``)."""
+
+    u: jax.Array
+    motor: jax.Array
+    record: "StepRecord"
+
+
+class StepRecord(NamedTuple):
+    """One step, for logs and trajectories: the measurement accepted; tau; the solver's
+    status, fallback and iterations; u; lambda (NaN where the QP failed); the ZMP margin
+    over the domain's support polygon (NaN where the QP failed); stance side (0 outside
+    walking); the stance sole's position when its step began; touchdowns missed; each
+    output's value and reference (a component not tracked in this domain: reference NaN);
+    each barrier's value h."""
+
+    ok: jax.Array
+    tau: jax.Array
+    status: jax.Array
+    fallback: jax.Array
+    iterations: jax.Array
+    eq_residual: jax.Array
+    u: jax.Array
+    lam: jax.Array
+    zmp_margin: jax.Array
+    stance: jax.Array
+    stance0: jax.Array
+    missed: jax.Array
+    y: dict
+    yd: dict
+    h: dict
+
+
+def conclude(ctx: Context, run: RunValues, state: ControllerState, prep: Prepared,
+             sol: Solution):
+    """The solver's answer -> (new state, Output): the torque held where the QP failed or the
+    measurement was refused, the motor torques, the record, the metrics accumulated."""
+    from safewbc_jax.solvers.jax_qp import FALLBACK_FAILED
+
+    model, sc = ctx.model, ctx.scenario
+    nv, nu = model.nv, model.nu
+    x = jnp.asarray(sol.x)
+    usable = prep.ok & (sol.fallback != FALLBACK_FAILED) & jnp.all(jnp.isfinite(x))
+    u = hold_torque(x, usable, state.last_u, nv, nu, jnp)
+    lam = jnp.where(usable, x[nv + nu + controller.n_chain_rows(model):], jnp.nan)
+    domain = prep.domain
+    in_contact = domain["in_contact"] if domain is not None else jnp.asarray(sc.in_contact)
+    margin = contacts.zmp_margin(model, prep.q, jnp.where(usable, lam, 0.0),
+                                 jnp.asarray(in_contact, prep.q.dtype))
+    margin = jnp.where(usable, margin, jnp.nan)
+    mask = sc.weight_mask(domain) if domain is not None and sc.weight_mask is not None else {}
+    y = {n: ya for n, (ya, _) in prep.aux["outputs"].items()}
+    yd = {n: jnp.where(mask[n] > 0, yd_, jnp.nan) if n in mask else yd_
+          for n, (_, yd_) in prep.aux["outputs"].items()}
+    zero = jnp.zeros((), prep.q.dtype)
+    g = state.gait
+    rec = StepRecord(ok=prep.ok, tau=prep.tau, status=jnp.asarray(sol.status, jnp.int32),
+                     fallback=jnp.asarray(sol.fallback, jnp.int32),
+                     iterations=jnp.asarray(sol.iterations, jnp.int32),
+                     eq_residual=jnp.where(usable, sol.eq_residual, jnp.nan), u=u, lam=lam,
+                     zmp_margin=margin, stance=g.stance if ctx.walking else zero,
+                     stance0=g.stance0, missed=g.missed, y=y, yd=yd,
+                     h=dict(prep.aux["barrier_h"]))
+    acc = metrics.control_accumulate(state.acc, rec, prep.t - state.t0, run.t_half,
+                                     jnp.asarray(model.torque_limit), xp=jnp)
+    keep = lambda new, old: jnp.where(prep.ok, new, old)  # noqa: E731
+    state = state._replace(last_u=jnp.where(usable, u, state.last_u),
+                           last_q=keep(prep.q, state.last_q), last_v=keep(prep.v, state.last_v),
+                           prev_t=keep(prep.t, state.prev_t), prev_tau=keep(prep.tau, state.prev_tau),
+                           acc=acc)
+    return state, Output(u, ctx.motors.to_motor(u, jnp), rec)
+
+
+def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState,
+             meas: Measurement):
+    """prepare -> the JAX QP solver (``jax_qp.solve``, fallback policy included) ->
+    conclude: the whole step in JAX (the batched path)."""
+    from safewbc_jax.solvers import jax_qp
+
+    state, prep, qpm = prepare(ctx, params, start, run, state, meas)
+    res = jax_qp.solve(qpm, nv=ctx.model.nv, nu=ctx.model.nu, p_blockdiag=True)
+    sol = Solution(res.x, res.status, res.fallback, res.iterations, res.eq_residual)
+    return conclude(ctx, run, state, prep, sol)
+
+
+# ----------------------------------------------------------------------------- Theorem 1
+
+def start_eta_fn(model, barrier, q):
+    """(v, threshold) -> eta(x_0) (r,) of ``barrier`` at the start state (q, v): the values
+    Theorem 1 is checked on. A barrier active only in some domains (the swing-foot
+    barrier) is evaluated where it first becomes active, at the start of the first step
+    from q (``walking.first_step_domain``). Pure JAX in (v, threshold): the batched path
+    vmaps it over the rollouts' start velocities."""
+    domain = None if barrier.active is None else walking.first_step_domain(model, q)
+
+    def eta(v, threshold):
+        return barriers.barrier_lie_derivatives(barrier.h_fn(model, threshold, domain), q, v,
+                                                barrier.relative_degree)[0]
+
+    return eta
+
+
+def check_start_poles(name: str, etas, poles, batched: bool) -> None:
+    """Theorem 1 (``barriers.check_poles``) for barrier ``name`` at each start state:
+    etas and poles (N, r). Raises barriers.PoleError naming the barrier, the pole, its
+    bound and, where ``batched``, the rollout."""
+    etas, poles = np.asarray(etas), np.asarray(poles)
+    for i in range(etas.shape[0]):
+        try:
+            barriers.check_poles(name, etas[i], poles[i])
+        except barriers.PoleError as e:
+            if not batched:
+                raise
+            raise barriers.PoleError(f"rollout {i}: {e}") from None
