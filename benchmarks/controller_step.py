@@ -10,7 +10,8 @@ which drives the robot here: one jitted ``control_step.prepare`` with the elimin
 PIQP, ``control_step.conclude`` dispatched without waiting) is timed at every step too,
 on the same measurement: as ``safewbc run`` records it in step_latency_us (prepare +
 solve) and as the caller sees it (the whole ``step``, measurement check and motor map
-included).
+included). A second controller without metrics (``Controller(keep_metrics=False)``: no
+``conclude``) takes the same measurements, interleaved step by step.
 
     python benchmarks/controller_step.py [--scenario squat] [--steps 2000] [--json]
 """
@@ -61,13 +62,15 @@ def main(argv=None) -> dict:
     asm_fn = jax.jit(lambda flat_terms, q, v, tau: pk_qp.pack(controller.build_qp(
         model, sc, params, flat_terms, q, v, tau, start, ic)))
     solver_red, solver_full = PiqpSolver(), PiqpSolver()
-    ctl = Controller(sc, params)
+    ctl = Controller(sc, params)                    # drives the robot; metrics on
     ctl.start(q0, d.qvel[sm.qvel_idx])
+    bare = Controller(sc, params, keep_metrics=False)    # the same step, no metrics
+    bare.start(q0, d.qvel[sm.qvel_idx])
     motor_ids = np.array([ms.actuator(n).id for n in ctl.motors.names])
     n_sub = int(round(1e-3 / ms.opt.timestep))
     rec = {k: [] for k in ("terms", "assembly", "reduce", "solve_reduced", "solve_full",
                            "iters_reduced", "iters_full", "fused_step", "fused_jit",
-                           "command")}
+                           "command", "bare_step", "bare_command")}
     t_compile = time.perf_counter()
     for k in range(args.steps):
         tau = k * 1e-3 - sc.settle
@@ -87,11 +90,14 @@ def main(argv=None) -> dict:
         t4 = time.perf_counter()
         x_full, info_f = solver_full.solve(qpm)
         t5 = time.perf_counter()
-        cmd = ctl.step(Measurement(q, v, k * 1e-3))
-        hr = ctl.record
-        rec["fused_step"].append(hr.t_qp + hr.t_solve)
-        rec["fused_jit"].append(hr.t_qp)
+        meas = Measurement(q, v, k * 1e-3)
+        cmd = ctl.step(meas)
+        ctl.flush()                    # its metrics, off the command's path
+        rec["fused_step"].append(sum(ctl.last_times))
+        rec["fused_jit"].append(ctl.last_times[0])
         rec["command"].append(cmd.latency_us)
+        rec["bare_command"].append(bare.step(meas).latency_us)
+        rec["bare_step"].append(sum(bare.last_times))
         d.ctrl[motor_ids] = cmd.motor
         for _ in range(n_sub):
             mujoco.mj_step(ms, d)
@@ -113,6 +119,8 @@ def main(argv=None) -> dict:
         "fused_step_us": stats(arr["fused_step"]),
         "fused_jit_us": stats(arr["fused_jit"]),
         "command_us": stats(arr["command"]),
+        "no_metrics_step_us": stats(arr["bare_step"]),
+        "no_metrics_command_us": stats(arr["bare_command"]),
         "breakdown_us": {k: stats(arr[k]) for k in ("terms", "assembly", "reduce", "solve_reduced")},
         "step_full_qp_us": stats(step_full),
         "solve_full_qp_us": stats(arr["solve_full"]),
@@ -133,6 +141,9 @@ def main(argv=None) -> dict:
               f" (jitted part p50 {res['fused_jit_us']['p50']} us); the whole "
               f"Controller.step: p50 {res['command_us']['p50']} us, p99 "
               f"{res['command_us']['p99']} us")
+        print(f"  the same without metrics (Controller(keep_metrics=False)): step p50 "
+              f"{res['no_metrics_step_us']['p50']} us, p99 {res['no_metrics_step_us']['p99']}"
+              f" us; whole step p50 {res['no_metrics_command_us']['p50']} us")
         for k, v in res["breakdown_us"].items():
             print(f"    {k:<14s} p50 {v['p50']:8.1f} us   p99 {v['p99']:8.1f} us")
         print(f"  PIQP on the full 78-variable QP: p50 {res['solve_full_qp_us']['p50']} us "

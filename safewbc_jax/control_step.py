@@ -3,12 +3,14 @@ and a real robot (``deploy.Controller``).
 
     state, prep, qp = prepare(ctx, params, start, run, state, meas)  # measurement -> QP
     sol             = <a QP solver>(qp)                   # jax_qp in JAX, PIQP on the host
-    state, out      = conclude(ctx, run, state, prep, sol)  # torque, motors, record, metrics
+    tally, out      = conclude(ctx, run, tally, prep, sol)  # torque, motors, record, metrics
 
 ``prepare`` and ``conclude`` are pure JAX functions of typed pytrees; the QP between them is
-the seam to the solvers. The batched path composes the three in one traced step
-(``step_jax``); the single-robot path jits ``prepare`` and ``conclude`` apart and runs PIQP
-between them on the host. Nothing in either loop decides anything about control:
+the seam to the solvers. ``prepare`` carries the ControllerState (gait, clock, last good
+measurement), ``conclude`` the Tally (last good torque, metrics): the next ``prepare``
+does not wait for ``conclude``. The batched path composes the three in one traced step
+(``step_jax``); the single-robot path jits ``prepare`` and ``conclude`` apart, runs PIQP
+between them on the host and ``conclude`` after the command is out. Nothing in either loop decides anything about control:
 
 * the measurement check (``state_ok``): a refused measurement holds the last good torque,
   does not advance the gait or the clock, and is counted (``bad_measurements``);
@@ -168,27 +170,32 @@ def start_data(model, scenario, q) -> dict:
 
 
 class ControllerState(NamedTuple):
-    """What the controller carries from one step to the next: the gait; the last good
-    torque, state and time; the clock's origin (NaN before the first good measurement);
-    the metric accumulators (``metrics.ControlAcc``)."""
+    """What ``prepare`` carries from one step to the next: the gait; the last accepted
+    state, time and tau; the clock's origin (NaN before the first good measurement)."""
 
     gait: walking.GaitState
-    last_u: jax.Array
     last_q: jax.Array
     last_v: jax.Array
     t0: jax.Array
     prev_t: jax.Array
     prev_tau: jax.Array
+
+
+class Tally(NamedTuple):
+    """What ``conclude`` carries from one step to the next: the last good torque (held
+    where a QP fails or a measurement is refused) and the metric accumulators
+    (``metrics.ControlAcc``)."""
+
+    last_u: jax.Array
     acc: metrics.ControlAcc
 
 
-def init_state(ctx: Context, q, v, xp=jnp, dtype=jnp.float64) -> ControllerState:
-    """The state before the first step, at the start state (q, v)."""
-    sc, model = ctx.scenario, ctx.model
+def init_state(ctx: Context, q, v, xp=jnp, dtype=jnp.float64) -> tuple[ControllerState, Tally]:
+    """(ControllerState, Tally) before the first step, at the start state (q, v)."""
     nan = xp.asarray(np.nan, dtype)
-    return ControllerState(walking.GaitState.standing(xp, dtype), xp.zeros(model.nu, dtype),
-                           xp.asarray(q, dtype), xp.asarray(v, dtype), nan, nan, nan,
-                           metrics.control_init(sc, xp, dtype))
+    return (ControllerState(walking.GaitState.standing(xp, dtype), xp.asarray(q, dtype),
+                            xp.asarray(v, dtype), nan, nan, nan),
+            Tally(xp.zeros(ctx.model.nu, dtype), metrics.control_init(ctx.scenario, xp, dtype)))
 
 
 class Solution(NamedTuple):
@@ -211,8 +218,9 @@ class Prepared(NamedTuple):
     ok: jax.Array
     q: jax.Array
     v: jax.Array
-    t: jax.Array
+    t_rel: jax.Array
     tau: jax.Array
+    gait: walking.GaitState
     domain: dict | None
     aux: dict
 
@@ -254,8 +262,10 @@ def prepare(ctx: Context, params, start, run: RunValues, state: ControllerState,
     qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, start,
                                    jnp.asarray(sc.in_contact, dtype),
                                    barrier_on=ctx.barrier_on, domain=domain)
-    state = state._replace(gait=gait, t0=jnp.where(ok, t0, state.t0))
-    return state, Prepared(ok, q, v, t, tau, domain, aux), qpm
+    keep = lambda new, old: jnp.where(ok, new, old)  # noqa: E731
+    state = ControllerState(gait=gait, last_q=q, last_v=keep(v_in, state.last_v),
+                            t0=keep(t0, state.t0), prev_t=t, prev_tau=keep(tau, state.prev_tau))
+    return state, Prepared(ok, q, v, t - t0, tau, gait, domain, aux), qpm
 
 
 class Output(NamedTuple):
@@ -292,17 +302,17 @@ class StepRecord(NamedTuple):
     h: dict
 
 
-def conclude(ctx: Context, run: RunValues, state: ControllerState, prep: Prepared,
-             sol: Solution):
-    """The solver's answer -> (new state, Output): the torque held where the QP failed or the
-    measurement was refused, the motor torques, the record, the metrics accumulated."""
+def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: Solution):
+    """The solver's answer -> (new Tally, Output): the torque held where the QP failed or
+    the measurement was refused, the motor torques, the record, the metrics accumulated.
+    Depends on ``prepare``'s output only (the gait of the record is the domain's)."""
     from safewbc_jax.solvers.jax_qp import FALLBACK_FAILED
 
     model, sc = ctx.model, ctx.scenario
     nv, nu = model.nv, model.nu
     x = jnp.asarray(sol.x)
     usable = prep.ok & (sol.fallback != FALLBACK_FAILED) & jnp.all(jnp.isfinite(x))
-    u = hold_torque(x, usable, state.last_u, nv, nu, jnp)
+    u = hold_torque(x, usable, tally.last_u, nv, nu, jnp)
     lam = jnp.where(usable, x[nv + nu + controller.n_chain_rows(model):], jnp.nan)
     domain = prep.domain
     in_contact = domain["in_contact"] if domain is not None else jnp.asarray(sc.in_contact)
@@ -314,26 +324,20 @@ def conclude(ctx: Context, run: RunValues, state: ControllerState, prep: Prepare
     yd = {n: jnp.where(mask[n] > 0, yd_, jnp.nan) if n in mask else yd_
           for n, (_, yd_) in prep.aux["outputs"].items()}
     zero = jnp.zeros((), prep.q.dtype)
-    g = state.gait
     rec = StepRecord(ok=prep.ok, tau=prep.tau, status=jnp.asarray(sol.status, jnp.int32),
                      fallback=jnp.asarray(sol.fallback, jnp.int32),
                      iterations=jnp.asarray(sol.iterations, jnp.int32),
                      eq_residual=jnp.where(usable, sol.eq_residual, jnp.nan), u=u, lam=lam,
-                     zmp_margin=margin, stance=g.stance if ctx.walking else zero,
-                     stance0=g.stance0, missed=g.missed, y=y, yd=yd,
+                     zmp_margin=margin, stance=prep.gait.stance if ctx.walking else zero,
+                     stance0=prep.gait.stance0, missed=prep.gait.missed, y=y, yd=yd,
                      h=dict(prep.aux["barrier_h"]))
-    acc = metrics.control_accumulate(state.acc, rec, prep.t - state.t0, run.t_half,
+    acc = metrics.control_accumulate(tally.acc, rec, prep.t_rel, run.t_half,
                                      jnp.asarray(model.torque_limit), xp=jnp)
-    keep = lambda new, old: jnp.where(prep.ok, new, old)  # noqa: E731
-    state = state._replace(last_u=jnp.where(usable, u, state.last_u),
-                           last_q=keep(prep.q, state.last_q), last_v=keep(prep.v, state.last_v),
-                           prev_t=keep(prep.t, state.prev_t), prev_tau=keep(prep.tau, state.prev_tau),
-                           acc=acc)
-    return state, Output(u, ctx.motors.to_motor(u, jnp), rec)
+    return Tally(u, acc), Output(u, ctx.motors.to_motor(u, jnp), rec)
 
 
 def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState,
-             meas: Measurement):
+             tally: Tally, meas: Measurement):
     """prepare -> the JAX QP solver (``jax_qp.solve``, fallback policy included) ->
     conclude: the whole step in JAX (the batched path)."""
     from safewbc_jax.solvers import jax_qp
@@ -341,7 +345,8 @@ def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState
     state, prep, qpm = prepare(ctx, params, start, run, state, meas)
     res = jax_qp.solve(qpm, nv=ctx.model.nv, nu=ctx.model.nu, p_blockdiag=True)
     sol = Solution(res.x, res.status, res.fallback, res.iterations, res.eq_residual)
-    return conclude(ctx, run, state, prep, sol)
+    tally, out = conclude(ctx, run, tally, prep, sol)
+    return state, tally, out
 
 
 # ----------------------------------------------------------------------------- Theorem 1

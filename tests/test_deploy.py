@@ -296,32 +296,36 @@ def test_installed_package_finds_its_files(tmp_path):
 @pytest.mark.parametrize("case", list(REASONS) + ["stale_time"])
 def test_control_step_refuses_in_the_graph(squat, stand, case):
     """The jitted control step refuses a bad measurement by itself (the batched path has no
-    host check before it): after one good step, a bad measurement fed straight to
-    ``control_step.prepare`` / ``conclude`` gives ok False, the last good torque (finite,
-    within the motor limits) even when the solver hands back a finite x, one count in
-    ``bad``, and leaves the clock and the last good state where they were."""
-    from safewbc_jax.control_step import Solution
-
+    host check before it): after one good step, a bad measurement fed straight to the
+    controller's compiled ``control_step.prepare`` / ``conclude`` gives ok False, the last
+    good torque (finite, within the motor limits) even when the solver hands back a finite
+    x, one count in ``bad``, and leaves the clock and the last good state where they
+    were."""
     ctl = squat
     ctl.reset()
     good = ctl.step(Measurement(*stand, 0.0, np.zeros(2)))
+    ctl.flush()
+    F = ctl._flat
     st0 = ctl.state
     if case == "stale_time":   # a good state at the time of the last step
         (q, v), f, t = stand, np.zeros(2), 0.0
     else:
         (q, v, f), t = _bad(stand, case), ctl.control_dt
-    st, prep, _ = ctl._prepare(ctl.params, ctl.start_data, ctl.run_values, st0,
-                               Measurement(q, v, t, f))
-    assert not bool(prep.ok)
+    meas = F["meas"].pack(Measurement(q, v, t, f))
+    st_flat, prep, _ = ctl._prepare(ctl._fixed, ctl._state, meas)
+    st1 = F["state"].unpack(np.asarray(st_flat))
+    assert not bool(F["prep"].unpack(np.asarray(prep)).ok)
+    assert float(st1.prev_t) == float(st0.prev_t) == 0.0 and float(st1.t0) == 0.0
+    np.testing.assert_array_equal(st1.last_q, st0.last_q)
+    np.testing.assert_array_equal(st1.last_v, st0.last_v)
     n = ctl.last_qp().P.shape[0]
     for x in (np.full(n, np.nan), np.ones(n)):   # a failed solve, a finite wrong answer
-        sol = Solution(x, np.int32(0), np.int32(0), np.int32(3), np.float64(0.0))
-        st1, packed = ctl._conclude(ctl.run_values, st, prep, sol)
+        sol = np.concatenate([x, [0, 0, 3, 0.0]])
+        tally_flat, packed = ctl._conclude(ctl._fixed, ctl._tally, prep, sol)
+        tally = F["tally"].unpack(np.asarray(tally_flat))
         rec = ctl._unpack_out(packed)[0]
-        np.testing.assert_array_equal(np.asarray(rec.u), good.u)
-        motor = ctl.motors.to_motor(np.asarray(rec.u))
+        np.testing.assert_array_equal(rec.u, good.u)
+        np.testing.assert_array_equal(tally.last_u, good.u)
+        motor = ctl.motors.to_motor(rec.u)
         assert np.all(np.isfinite(motor)) and np.all(np.abs(motor) <= ctl.motors.motor_limit)
-        assert int(st1.acc.bad) == 1 and int(st1.acc.steps) == 1
-        assert float(st1.prev_t) == float(st0.prev_t) == 0.0
-        np.testing.assert_array_equal(np.asarray(st1.last_q), np.asarray(st0.last_q))
-        np.testing.assert_array_equal(np.asarray(st1.last_u), good.u)
+        assert int(tally.acc.bad) == 1 and int(tally.acc.steps) == 1

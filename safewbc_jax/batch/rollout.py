@@ -276,6 +276,7 @@ class Carry(NamedTuple):
 
     dx: object
     ctl: control_step.ControllerState
+    tally: control_step.Tally
     plant: metrics.PlantAcc
     alive: jax.Array
     fell_step: jax.Array
@@ -335,7 +336,8 @@ def _step(pl: Plant, run: Run, params, push: Push, carry: Carry, k):
     record."""
     where = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
     live = carry.alive & (k < run.n_steps)
-    ctl, out = control_step.step_jax(pl.ctx, params, pl.start, run.values, carry.ctl, carry.meas)
+    ctl, tally, out = control_step.step_jax(pl.ctx, params, pl.start, run.values, carry.ctl,
+                                            carry.tally, carry.meas)
     rec = out.record
     dx_new = _physics(pl, carry.dx, out.motor, push, rec.tau)
     meas, legs = _sense(pl, dx_new, (k + 1) * pl.cfg.control_dt)
@@ -345,7 +347,8 @@ def _step(pl: Plant, run: Run, params, push: Push, carry: Carry, k):
                                      loop, legs, xp=jnp)
     fell_now = live & control_step.fallen(meas.q, meas.v, jnp)
     keep = live & ~fell_now
-    new = Carry(dx=where(keep, dx_new, carry.dx), ctl=where(live, ctl, carry.ctl), plant=plant,
+    new = Carry(dx=where(keep, dx_new, carry.dx), ctl=where(live, ctl, carry.ctl),
+                tally=where(live, tally, carry.tally), plant=plant,
                 alive=carry.alive & ~fell_now,
                 fell_step=jnp.where(fell_now, k, carry.fell_step).astype(jnp.int32),
                 meas=where(keep, meas, carry.meas), legs=jnp.where(keep, legs, carry.legs))
@@ -369,7 +372,7 @@ def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, pertu
                                      jnp.asarray(t_half, dtype)), n_steps)
     dx = pl.data0.replace(qvel=pl.data0.qvel + perturb_v)
     meas, legs = _sense(pl, dx, 0.0)
-    carry = Carry(dx, control_step.init_state(pl.ctx, meas.q, meas.v, jnp, dtype),
+    carry = Carry(dx, *control_step.init_state(pl.ctx, meas.q, meas.v, jnp, dtype),
                   metrics.plant_init(jnp, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
                   meas, legs)
     step = functools.partial(_step, pl, run, params, push)
@@ -415,7 +418,7 @@ _SINGLE_RUN_ONLY = ("tracking_rms_components.", "torso_pitch_")
 
 def _finish(pl: Plant, final: Carry) -> dict:
     """The final Carry (batched, numpy) -> flat metric columns, names as in metrics.json."""
-    out = metrics.finalize(final.ctl.acc, final.plant, ~final.alive,
+    out = metrics.finalize(final.tally.acc, final.plant, ~final.alive,
                            final.ctl.gait if pl.walking else None)
     out = {k: v for k, v in out.items() if not k.startswith(_SINGLE_RUN_ONLY)}
     out["fell_time_s"] = np.where(final.alive, np.nan, final.fell_step * pl.cfg.control_dt)

@@ -182,8 +182,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         arrays["qp_step"] = np.array([r[0] for r in recorded])
         arrays["qp_status"] = np.array([r[2] for r in recorded])
         arrays["qp_fallback"] = np.array([r[3] for r in recorded])
-    st = jax.tree_util.tree_map(np.asarray, ctl.state)
-    flat = metrics.finalize(st.acc, plant, fell, st.gait if walking else None)
+    st = ctl.state
+    flat = metrics.finalize(ctl.tally.acc, plant, fell, st.gait if walking else None)
     tau = arrays["tau"]
     return arrays, dict(fell=fell, settle=settle, duration=duration, n_sub=n_sub,
                         duration_s=float(max(tau[-1], 0.0) + cfg.control_dt) if tau.size else 0.0,
