@@ -194,7 +194,7 @@ class Controller:
 
     Attributes: ``steps`` (calls of ``step``), ``qp_failed``, ``fallbacks`` (relaxed QPs),
     ``bad_measurements``; ``compile_s``; ``gait`` (walking.GaitState, walking only);
-    ``record`` (HostRecord of the last step, None when it was refused);
+    ``record`` (HostRecord of the last step);
     ``last_times`` ((prepare, solve) of the last good step in us); ``motors``
     (MotorMap); ``state`` (control_step.ControllerState) and ``tally``
     (control_step.Tally); ``metrics()``."""
@@ -265,6 +265,7 @@ class Controller:
         meas0 = Measurement(q, v, 0.0, np.zeros(2))
         qp0 = jax.jit(lambda *a: control_step.prepare(ctx, *a)[2])(*fixed, state0, meas0)
         bounded = reduce.bounded_variables(qp0, nv, nu)
+        self._nx = int(qp0.P.shape[0])
         prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
         sol0 = control_step.Solution(np.zeros(qp0.P.shape[0]), np.int32(0), np.int32(0),
                                      np.int32(0), np.float64(0.0))
@@ -299,7 +300,7 @@ class Controller:
         no torque held, the clock restarting at the next good measurement, PIQP set up
         afresh."""
         self.steps = self.qp_failed = self.fallbacks = self.bad_measurements = 0
-        self._record = self._pending = None
+        self._record = self._pending = self._last_qp = None
         self._last_u = np.zeros(self.model.nu)
         self._prev_t = None
         if self._start_qv is not None:
@@ -342,7 +343,10 @@ class Controller:
 
     @property
     def record(self) -> HostRecord | None:
-        """The last step's HostRecord (None when it was refused)."""
+        """The last step's HostRecord: ``step.ok`` False where the measurement was refused
+        (then x is None and the torque is the held one); None before the first step and
+        where the measurement could not enter the step at all (shapes, types, sole forces
+        missing while walking)."""
         self.flush()
         r = self._record
         if r is not None and not isinstance(r, HostRecord):
@@ -367,16 +371,25 @@ class Controller:
         reason = check_measurement(meas, self.walking)
         if reason == "ok" and self._prev_t is not None and not meas.t > self._prev_t:
             reason = f"t = {meas.t} does not advance (last step at {self._prev_t})"
+        flat_meas = None if reason == "ok" else self._well_formed(meas)
         if reason != "ok":
             self.bad_measurements += 1
             self._record = None
-            tally = self._flat["tally"].unpack(np.asarray(self._tally))
-            tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
-            self._tally = jnp.asarray(self._flat["tally"].pack(tally))
+            if flat_meas is None:   # cannot enter the step: counted here
+                tally = self._flat["tally"].unpack(np.asarray(self._tally))
+                tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
+                self._tally = jnp.asarray(self._flat["tally"].pack(tally))
+            else:                   # the step refuses it itself (and counts it, and records)
+                self._state, prep, _ = self._prepare(self._fixed, self._state, flat_meas)
+                sol = np.concatenate([np.full(self._nx, np.nan),
+                                      [SolveStatus.NUMERICAL, FALLBACK_NAMES.index("failed"), 0,
+                                       np.nan]])
+                self.last_times = (np.nan, np.nan)
+                if self.keep_metrics:
+                    self._pending = (prep, sol, None, {"fallback": "held", "reason": reason},
+                                     np.nan, np.nan)
             return self._command(self._last_u, None, "held", reason, t_in)
-        force = np.zeros(2) if meas.sole_force is None else meas.sole_force
-        flat_meas = np.concatenate([np.asarray(meas.q, float), np.asarray(meas.v, float),
-                                    np.asarray(force, float), [float(meas.t)]])
+        flat_meas = self._well_formed(meas)
         self._state, prep, packed = self._prepare(self._fixed, self._state, flat_meas)
         qpm, red, rmap = self._unpack_qp(packed)
         self._last_qp = qpm
@@ -404,6 +417,19 @@ class Controller:
         self._last_u = np.array(u)
         self._prev_t = meas.t
         return self._command(self._last_u, SolveStatus(int(info["status"])), fb, "ok", t_in)
+
+    def _well_formed(self, meas: Measurement):
+        """The measurement as the step's flat vector (q, v, sole forces, t), or None where
+        it cannot be one (shapes, types; sole forces missing while walking)."""
+        try:
+            q, v = np.asarray(meas.q, float), np.asarray(meas.v, float)
+            f = (np.zeros(2) if meas.sole_force is None and not self.walking
+                 else np.asarray(meas.sole_force, float))
+            if q.shape != (37,) or v.shape != (36,) or f.shape != (2,):
+                return None
+            return np.concatenate([q, v, f, [float(meas.t)]])
+        except (TypeError, ValueError):
+            return None
 
     def _command(self, u, status, fallback, reason, t_in) -> Command:
         u = np.array(u)

@@ -183,7 +183,10 @@ def test_bad_measurement_holds_the_last_good_torque(squat, stand, case):
     assert np.all(c0.u == 0) and np.all(c0.motor == 0)
     assert (c0.fallback, c0.solve_status) == ("held", None)
     assert REASONS[case] in c0.measurement, c0.measurement
-    assert ctl.record is None and ctl.bad_measurements == 1
+    rec = ctl.record     # the step refused it itself (sole forces aside, all enter the step)
+    assert rec is not None and not rec.step.ok and rec.x is None and ctl.bad_measurements == 1
+    np.testing.assert_array_equal(rec.step.u, c0.u)
+    assert int(ctl.tally.acc.bad) == 1
     good = ctl.step(Measurement(*stand, 0.0, np.array([230.0, 240.0])))
     assert good.measurement == "ok" and np.any(good.u != 0)
     c1 = ctl.step(Measurement(q, v, ctl.control_dt, f))

@@ -137,7 +137,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     for k in range(n_steps):
         cmd = ctl.step(meas)
         hr = ctl.record
-        if hr is None:   # a state the controller refused (a diverged simulation)
+        if hr is None:   # a measurement that could not enter the step (not from this loop)
             fell = True
             break
         rec = hr.step
@@ -154,7 +154,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
                                          loop_res, legs)
         log["t"].append(k * cfg.control_dt), log["tau"].append(float(rec.tau))
         log["u"].append(cmd.u), log["status"].append(int(rec.status))
-        log["fallback"].append(FALLBACK_NAMES[int(rec.fallback)])
+        log["fallback"].append(FALLBACK_NAMES[int(rec.fallback)] if rec.ok else "held")
         log["t_qp"].append(hr.t_qp), log["t_solve"].append(hr.t_solve)
         log["eq_residual"].append(float(rec.eq_residual)), log["lambda"].append(rec.lam)
         log["zmp_margin"].append(float(rec.zmp_margin))
