@@ -84,7 +84,7 @@ class Plant:
     ctx: control_step.Context
     qpos_idx: np.ndarray
     qvel_idx: np.ndarray
-    motor_ids: np.ndarray    # simulator actuator of each motor (MotorMap order)
+    motor_of_ctrl: np.ndarray  # the motor (MotorMap order) of each simulator actuator
     ctrl_lo: np.ndarray
     ctrl_hi: np.ndarray
     base_id: int
@@ -183,7 +183,7 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
         cfg=cfg, scenario=sc, model=model, mjx_model=mx, data0=dx,
         ctx=ctx,
         qpos_idx=np.asarray(sm.qpos_idx), qvel_idx=np.asarray(sm.qvel_idx),
-        motor_ids=np.array([ms.actuator(n).id for n in motors.names]),
+        motor_of_ctrl=np.argsort([ms.actuator(n).id for n in motors.names]),
         ctrl_lo=ms.actuator_ctrlrange[:, 0].copy(), ctrl_hi=ms.actuator_ctrlrange[:, 1].copy(),
         base_id=ms.body("base").id, sole_sites=soles, tip_sites=tips, anchor_sites=anchors,
         sole0_xy=d.site_xpos[soles, :2].copy(),
@@ -296,8 +296,9 @@ def _sense(pl: Plant, dx, t):
 
 def _physics(pl: Plant, dx, motor, push: Push, tau):
     mjx = import_mjx()
-    ctrl = jnp.zeros_like(dx.ctrl).at[pl.motor_ids].set(motor)
-    ctrl = jnp.clip(ctrl, pl.ctrl_lo, pl.ctrl_hi)
+    # each simulator actuator's motor torque (a gather: the motors are the actuators, in
+    # another order)
+    ctrl = jnp.clip(motor[pl.motor_of_ctrl], pl.ctrl_lo, pl.ctrl_hi)
     xfrc = jnp.zeros_like(dx.xfrc_applied).at[pl.base_id, :3].set(force_at(push, tau, jnp))
     dx = dx.replace(ctrl=ctrl, xfrc_applied=xfrc)
     for _ in range(pl.n_sub):
