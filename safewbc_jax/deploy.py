@@ -371,7 +371,7 @@ class Controller:
         reason = check_measurement(meas, self.walking)
         if reason == "ok" and self._prev_t is not None and not meas.t > self._prev_t:
             reason = f"t = {meas.t} does not advance (last step at {self._prev_t})"
-        flat_meas = None if reason == "ok" else self._well_formed(meas)
+        flat_meas = self._well_formed(meas)   # None: it cannot enter the step
         if reason != "ok":
             self.bad_measurements += 1
             self._record = None
@@ -389,7 +389,6 @@ class Controller:
                     self._pending = (prep, sol, None, {"fallback": "held", "reason": reason},
                                      np.nan, np.nan)
             return self._command(self._last_u, None, "held", reason, t_in)
-        flat_meas = self._well_formed(meas)
         self._state, prep, packed = self._prepare(self._fixed, self._state, flat_meas)
         qpm, red, rmap = self._unpack_qp(packed)
         self._last_qp = qpm
