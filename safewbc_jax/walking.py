@@ -49,6 +49,7 @@ import numpy as np
 
 from safewbc_jax import alip, chains, outputs, references, robot, scenarios
 from safewbc_jax.params import make_params
+from safewbc_jax.solvers import lapack_batched as lb
 
 H_WALK = 0.9            # CoM height (m), paper
 STEP_T = 0.35           # step period (s), paper
@@ -134,7 +135,7 @@ def rigid_spring_velocity(model, q, v, stance):
         pas = _leg_passive_dofs(model, side)
         rest = np.setdiff1d(np.arange(model.nv), pas)
         j = jc[rows[side]]
-        vp = -jnp.linalg.solve(j[:, pas], j[:, rest] @ v[rest])
+        vp = -lb.solve(j[:, pas], j[:, rest] @ v[rest])   # see solvers/lapack_batched.py
         out[side] = v.at[pas].set(vp)
     return jnp.where(stance > 0, out["right"], jnp.where(stance < 0, out["left"], v))
 

@@ -3,25 +3,23 @@ stepped together, scanned over time, vmapped over a batch of ControllerParams, p
 initial velocity perturbations. Every scenario of the deployment loop runs here: squat,
 bow, arms, and walking ("walk", "push") with its gait state carried per rollout.
 
-One control step of one rollout (the deployment loop's step, in JAX):
+One control step of one rollout is the control step every loop shares
+(``control_step.step_jax``: measurement check, gait, rigid swing-leg rates, QP, the JAX QP
+solver ``jax_qp.solve`` with its fallback policy, held torque, motor torques, metrics),
+between what stays per simulator:
 
-    simulator state -> controller (q, v)                  (statemap indices)
-    robot_terms, build_qp                                 (the same functions as the MuJoCo loop)
-    jax_qp.solve                                          (reduced QP in u, interior point,
-                                                           polish, fallback policy)
-    u from X; the last good u held where even the relaxed QP fails
-    ctrl = clip(u[act_idx] / gear), push force on the base body, n_sub mjx.step
-    metrics updated on the device (names of metrics.json)
-
-Walking adds, as in the deployment loop (``sim.mujoco_loop``): the domain from the gait
-state (``walking.gait_domain``), the swing leg's rates with rigid springs
-(``walking.rigid_spring_velocity``) fed to the controller, and after the physics the gait
-advanced by ``walking.gait_step`` from each sole's normal force on the floor (MJX's
-pyramid constraint forces, summed as ``mj_contactForce`` does) and the measured soles.
+    MJX Data -> Measurement (q, v through the state map; walking: each sole's normal force
+                on the floor, MJX's pyramid constraint forces summed as ``mj_contactForce``
+                does)
+    control_step.step_jax
+    motor torques into ctrl, the push on the base body (``push.force_at``), n_sub mjx.step
+    MJX Data -> the next Measurement: plant metrics (``metrics.plant_accumulate``), the
+                fall test (``control_step.fallen``)
 
 A rollout that falls (base below ``FALL_HEIGHT`` or a non-finite state) is frozen at its
 last state and flagged; its metrics stop accumulating. A failed QP is counted and holds the
-last torque. Neither touches the other rollouts of the batch.
+last torque; a measurement the controller refuses (a diverging simulation) is counted in
+``bad_measurements`` and holds it too. Neither touches the other rollouts of the batch.
 
 The batch is sharded over the process's devices (``jax.local_devices()``, leading axis),
 padded to a multiple of the device count. On a CPU with one device it runs in chunks of
@@ -39,14 +37,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import contacts, controller, metrics, walking
+from safewbc_jax import control_step, metrics
 from safewbc_jax.chunking import check_chunk, chunked, resolve_chunk
+from safewbc_jax.control_step import Measurement
+from safewbc_jax.deploy import MotorMap
 from safewbc_jax.mjx_import import import_mjx
 from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.params import ControllerParams
-from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario, start_state
-from safewbc_jax.control_step import FALL_HEIGHT, check_start_poles, start_eta_fn
 from safewbc_jax.push import Push, force_at
+from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario
 from safewbc_jax.sim.mujoco_loop import load_at_stand
 from safewbc_jax.solvers import jax_qp
 
@@ -82,10 +81,10 @@ class Plant:
     model: object            # RobotModel (controller)
     mjx_model: object
     data0: object            # mjx.Data at the stand keyframe (dtypes as mjx.step returns)
+    ctx: control_step.Context
     qpos_idx: np.ndarray
     qvel_idx: np.ndarray
-    act_idx: np.ndarray
-    gear: np.ndarray
+    motor_of_ctrl: np.ndarray  # the motor (MotorMap order) of each simulator actuator
     ctrl_lo: np.ndarray
     ctrl_hi: np.ndarray
     base_id: int
@@ -100,7 +99,6 @@ class Plant:
     sim_dt: float
     nv_sim: int
     walking: bool
-    weight: float            # N
     floor_geom: int
     sole_geoms: np.ndarray   # (2,) left, right
     leg_geoms: np.ndarray    # (2, k) collision geoms of the left and the right leg
@@ -109,13 +107,16 @@ class Plant:
     def schedule(self, cfg: BatchConfig) -> tuple[int, float]:
         """(control steps, settle seconds) of a config (run-time values: configs that
         differ only in duration and settle share one compiled function)."""
-        sc = self.scenario
-        settle = sc.settle if cfg.settle is None else float(cfg.settle)
-        duration = sc.duration if cfg.duration is None else float(cfg.duration)
-        if settle < sc.blend:
-            raise BatchError(f"BatchConfig.settle = {settle}: must cover the reference "
-                             f"blend ({sc.blend} s)")
-        return int(round((settle + duration) / cfg.control_dt)), settle
+        return _schedule(self.scenario, cfg)
+
+
+def _schedule(scenario, cfg: BatchConfig) -> tuple[int, float]:
+    try:
+        n, settle, _ = control_step.schedule(scenario, cfg.duration, cfg.settle,
+                                             cfg.control_dt, "BatchConfig.")
+    except ValueError as e:
+        raise BatchError(str(e)) from None
+    return n, settle
 
 
 def _check_config(cfg: BatchConfig) -> None:
@@ -125,14 +126,6 @@ def _check_config(cfg: BatchConfig) -> None:
                          f"(available: {known})")
     if not np.isfinite(cfg.speed):
         raise BatchError(f"BatchConfig.speed = {cfg.speed!r}: must be a finite number")
-    for name in ("duration", "settle"):
-        val = getattr(cfg, name)
-        if val is not None and not (np.isfinite(val) and val >= 0):
-            raise BatchError(f"BatchConfig.{name} = {val!r}: must be a finite number >= 0")
-    if cfg.duration is not None and cfg.duration <= 0:
-        raise BatchError(f"BatchConfig.duration = {cfg.duration!r}: must be positive")
-    if not (cfg.control_dt > 0):
-        raise BatchError(f"BatchConfig.control_dt = {cfg.control_dt!r}: must be positive")
     if int(cfg.decimate) != cfg.decimate or cfg.decimate < 0:
         raise BatchError(f"BatchConfig.decimate = {cfg.decimate!r}: must be an integer >= 0")
 
@@ -156,9 +149,8 @@ def _contact_rows(mjx, ms) -> np.ndarray:
 def plant(cfg: BatchConfig) -> Plant:
     """The host-side constants of a config (validated first)."""
     _check_config(cfg)
-    pl = _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt))
-    pl.schedule(cfg)
-    return pl
+    _schedule(get_scenario(cfg.scenario, cfg.barrier), cfg)   # before the plant is built
+    return _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt))
 
 
 @functools.lru_cache(maxsize=8)
@@ -173,11 +165,9 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
                          f"multiple of the simulation step {ms.opt.timestep}")
 
     q0, v0 = (np.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
-    start = start_state(model, jnp.asarray(q0))
-    start["y0"] = controller.output_start_values(model, sc, jnp.asarray(q0))
-    is_walking = cfg.scenario in WALKING
-    if is_walking:   # as the deployment loop; "settle" is set per run (run-time value)
-        start.update(walking.walking_start(model, jnp.asarray(q0), start, sc.blend))
+    start = control_step.start_data(model, sc, q0)
+    motors = MotorMap.build(mc)
+    ctx = control_step.Context(model, sc, cfg.barrier, cfg.control_dt, motors.arrays())
 
     mx = mjx.put_model(ms)
     dx = mjx.put_data(ms, d)
@@ -191,13 +181,14 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
     soles = ids["sole_sites"]
     return Plant(
         cfg=cfg, scenario=sc, model=model, mjx_model=mx, data0=dx,
+        ctx=ctx,
         qpos_idx=np.asarray(sm.qpos_idx), qvel_idx=np.asarray(sm.qvel_idx),
-        act_idx=np.asarray(sm.act_idx), gear=np.asarray(sm.gear, float),
+        motor_of_ctrl=np.argsort([ms.actuator(n).id for n in motors.names]),
         ctrl_lo=ms.actuator_ctrlrange[:, 0].copy(), ctrl_hi=ms.actuator_ctrlrange[:, 1].copy(),
         base_id=ms.body("base").id, sole_sites=soles, tip_sites=tips, anchor_sites=anchors,
         sole0_xy=d.site_xpos[soles, :2].copy(),
         start=start, q0=q0, v0=v0, n_sub=n_sub, sim_dt=float(ms.opt.timestep), nv_sim=ms.nv,
-        walking=is_walking, weight=float(-model.gravity[2] * model.total_mass),
+        walking=ctx.walking,
         floor_geom=ids["floor"], sole_geoms=ids["sole_geoms"], leg_geoms=ids["legs"],
         contact_rows=_contact_rows(mjx, ms))
 
@@ -251,7 +242,7 @@ def _start_eta(pl: Plant, name: str):
     """jit(vmap): (v0, threshold) -> eta(x0) of barrier ``name`` at the stand pose
     (``control_step.start_eta_fn``)."""
     b = next(b for b in pl.scenario.barriers if b.name == name)
-    return jax.jit(jax.vmap(start_eta_fn(pl.model, b, jnp.asarray(pl.q0))))
+    return jax.jit(jax.vmap(control_step.start_eta_fn(pl.model, b, jnp.asarray(pl.q0))))
 
 
 def start_etas(pl: Plant, name: str, perturb_v, thresholds) -> np.ndarray:
@@ -265,134 +256,54 @@ def check_batch_poles(pl: Plant, params, perturb_v) -> None:
     """Theorem 1 for every rollout at its own start state (velocity perturbation and
     threshold included), before anything long compiles: PoleError names the rollout."""
     for b in pl.scenario.barriers:
-        check_start_poles(b.name, start_etas(pl, b.name, perturb_v, params.threshold[b.name]),
-                          params.poles[b.name], batched=True)
-
-
-# ----------------------------------------------------------------------------- the loop
-
-class Acc(NamedTuple):
-    """Per-rollout running metrics."""
-
-    alive: jax.Array
-    fell_step: jax.Array
-    n_none: jax.Array
-    n_relaxed: jax.Array
-    n_failed: jax.Array
-    track_sq: dict
-    track_n: dict
-    h_min: dict
-    zmp_min: jax.Array
-    slip_max: jax.Array
-    torque_max: jax.Array
-    loop_max: jax.Array
-    # walking (left at their start values in the other scenarios)
-    legs_prev: jax.Array
-    leg_collisions: jax.Array
-    leg_contact_steps: jax.Array
-    clearance_min: jax.Array
-    com_x_half: jax.Array
-    com_x_end: jax.Array
-
-
-def _acc0(pl: Plant, dtype) -> Acc:
-    sc = pl.scenario
-    z = jnp.zeros((), dtype)
-    inf = jnp.asarray(jnp.inf, dtype)
-    i0 = jnp.zeros((), jnp.int32)
-    return Acc(alive=jnp.asarray(True), fell_step=jnp.asarray(-1, jnp.int32),
-               n_none=i0, n_relaxed=i0, n_failed=i0, track_sq={o.name: z for o in sc.outputs},
-               track_n={o.name: i0 for o in sc.outputs},
-               h_min={b.name: inf for b in sc.barriers + sc.monitors},
-               zmp_min=inf, slip_max=z, torque_max=z, loop_max=z,
-               legs_prev=jnp.asarray(False), leg_collisions=i0, leg_contact_steps=i0,
-               clearance_min=inf, com_x_half=jnp.asarray(jnp.nan, dtype),
-               com_x_end=jnp.asarray(jnp.nan, dtype))
+        control_step.check_start_poles(b.name, start_etas(pl, b.name, perturb_v,
+                                                          params.threshold[b.name]),
+                                       params.poles[b.name], batched=True)
 
 
 class Run(NamedTuple):
-    """Run-time (traced) values shared by the batch: the scenario with its settle time,
-    the number of control steps; walking: the commanded speed, and the control step at
-    which the second half of the walk begins (``avg_forward_speed``, as in
-    ``metrics.summarize``)."""
+    """Run-time (traced) values shared by the batch: the control step's (settle, speed,
+    where the forward speed's window begins) and the number of control steps."""
 
-    scenario: object
+    values: control_step.RunValues
     n_steps: jax.Array
-    speed: jax.Array
-    k_half: jax.Array
 
 
-def _control(pl: Plant, sc, params, q, v, tau, last_u, start, domain):
-    """One controller step: (u to apply, lambda, solver Result, aux of build_qp)."""
-    model = pl.model
-    nv, nu = model.nv, model.nu
-    terms = controller.robot_terms(model, sc, q, v, domain)
-    qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, start,
-                                   jnp.asarray(sc.in_contact, q.dtype),
-                                   barrier_on=pl.cfg.barrier, domain=domain)
-    res = jax_qp.solve(qpm, nv=nv, nu=nu, p_blockdiag=True)
-    ok = res.fallback != jax_qp.FALLBACK_FAILED
-    u = jnp.where(ok, res.x[nv:nv + nu], last_u)
-    lam = res.x[nv + nu + controller.n_chain_rows(model):]
-    return u, lam, res, aux
+class Carry(NamedTuple):
+    """One rollout between control steps: the simulator, the controller, the plant
+    metrics, whether it is still standing (and the step it fell at), the measurement and
+    the legs' contact sensed after the last physics step."""
+
+    dx: object
+    ctl: control_step.ControllerState
+    tally: control_step.Tally
+    plant: metrics.PlantAcc
+    alive: jax.Array
+    fell_step: jax.Array
+    meas: Measurement
+    legs: jax.Array
 
 
-def _physics(pl: Plant, dx, u, push: Push, tau):
+def _sense(pl: Plant, dx, t):
+    """MJX Data -> (Measurement, whether a leg touches the other leg)."""
+    q, v = dx.qpos[pl.qpos_idx], dx.qvel[pl.qvel_idx]
+    if pl.walking:
+        soles, legs = sole_forces_and_leg_contact(pl, dx)
+    else:
+        soles, legs = jnp.zeros(2, q.dtype), jnp.asarray(False)
+    return Measurement(q, v, jnp.asarray(t, q.dtype), soles), legs
+
+
+def _physics(pl: Plant, dx, motor, push: Push, tau):
     mjx = import_mjx()
-    ctrl = jnp.clip(u[pl.act_idx] / pl.gear, pl.ctrl_lo, pl.ctrl_hi)
+    # each simulator actuator's motor torque (a gather: the motors are the actuators, in
+    # another order)
+    ctrl = jnp.clip(motor[pl.motor_of_ctrl], pl.ctrl_lo, pl.ctrl_hi)
     xfrc = jnp.zeros_like(dx.xfrc_applied).at[pl.base_id, :3].set(force_at(push, tau, jnp))
     dx = dx.replace(ctrl=ctrl, xfrc_applied=xfrc)
     for _ in range(pl.n_sub):
         dx = mjx.step(pl.mjx_model, dx)
     return dx
-
-
-def _update(pl: Plant, acc: Acc, live, tau, q, u, lam, res, aux, dx_new, domain) -> Acc:
-    """Metrics of this step (counted where ``live``: alive and inside the run). Walking:
-    output components not tracked in this domain are left out of the tracking RMS, and
-    in single support the slip is the stance sole's, from where its step began (as
-    ``metrics.summarize`` and the MuJoCo loop)."""
-    model, sc = pl.model, pl.scenario
-    fb = res.fallback
-    count = lambda c: jnp.where(live & c, 1, 0).astype(jnp.int32)  # noqa: E731
-    track = live & (tau >= metrics.TRACKING_SKIP_S)
-    mask = sc.weight_mask(domain) if domain is not None else {}
-    track_sq, track_n = {}, {}
-    for o in sc.outputs:
-        ya, yd = aux["outputs"][o.name]
-        m = mask.get(o.name, jnp.ones(o.dim))
-        row = track & jnp.any(m > 0)
-        track_sq[o.name] = acc.track_sq[o.name] + jnp.where(
-            row, jnp.sum(jnp.where(m > 0, ya - yd, 0.0) ** 2), 0.0)
-        track_n[o.name] = acc.track_n[o.name] + jnp.where(row, 1, 0).astype(jnp.int32)
-    h_min = {n: jnp.where(live, jnp.minimum(acc.h_min[n], aux["barrier_h"][n]), acc.h_min[n])
-             for n in acc.h_min}
-    # the support polygon of the domain the QP ran in (single support: the stance sole)
-    in_contact = domain["in_contact"] if domain is not None else sc.in_contact
-    margin = contacts.zmp_margin(model, q, lam, jnp.asarray(in_contact, q.dtype))
-    zmp_ok = live & (tau >= 0) & (fb != jax_qp.FALLBACK_FAILED)
-    sites = dx_new.site_xpos
-    slip = jnp.max(jnp.linalg.norm(sites[pl.sole_sites, :2] - pl.sole0_xy, axis=-1))
-    if domain is not None:
-        stance = domain["stance"]
-        st = jnp.where(stance > 0, sites[pl.sole_sites[0], :2], sites[pl.sole_sites[1], :2])
-        slip = jnp.where(stance != 0, jnp.linalg.norm(st - domain["stance0"][:2]), slip)
-    loop = jnp.max(jnp.linalg.norm(sites[pl.tip_sites] - sites[pl.anchor_sites], axis=-1))
-    ratio = jnp.max(jnp.abs(u) / model.torque_limit)
-    mx = lambda old, new: jnp.where(live, jnp.maximum(old, new), old)  # noqa: E731
-    return acc._replace(
-        n_none=acc.n_none + count(fb == jax_qp.FALLBACK_NONE),
-        n_relaxed=acc.n_relaxed + count(fb == jax_qp.FALLBACK_RELAXED),
-        n_failed=acc.n_failed + count(fb == jax_qp.FALLBACK_FAILED),
-        track_sq=track_sq, track_n=track_n,
-        h_min=h_min, zmp_min=jnp.where(zmp_ok, jnp.minimum(acc.zmp_min, margin), acc.zmp_min),
-        slip_max=mx(acc.slip_max, slip), loop_max=mx(acc.loop_max, loop),
-        torque_max=mx(acc.torque_max, ratio))
-
-
-def _fallen(pl: Plant, dx) -> jax.Array:
-    finite = jnp.all(jnp.isfinite(dx.qpos)) & jnp.all(jnp.isfinite(dx.qvel))
-    return ~finite | (dx.xpos[pl.base_id, 2] < FALL_HEIGHT)
 
 
 def _pair(g, a, b):
@@ -420,86 +331,61 @@ def sole_forces_and_leg_contact(pl: Plant, dx):
     return soles, legs
 
 
-def _walk_update(pl: Plant, acc: Acc, live, k, tau, run: Run, aux, gait_new, legs, dx_new):
-    """Walking metrics of this step (``metrics.summarize``'s walking block)."""
+def _step(pl: Plant, run: Run, params, push: Push, carry: Carry, k):
+    """One control step of one rollout (sense -> control_step.step_jax -> push and
+    physics -> plant metrics and the fall test); returns the new carry and this step's
+    record."""
+    where = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
+    live = carry.alive & (k < run.n_steps)
+    ctl, tally, out = control_step.step_jax(pl.ctx, params, pl.start, run.values, carry.ctl,
+                                            carry.tally, carry.meas)
+    rec = out.record
+    dx_new = _physics(pl, carry.dx, out.motor, push, rec.tau)
+    meas, legs = _sense(pl, dx_new, (k + 1) * pl.cfg.control_dt)
     sites = dx_new.site_xpos
-    clearance = sites[pl.sole_sites[0], 1] - sites[pl.sole_sites[1], 1]
-    ss = live & (tau >= 0) & (gait_new.stance != 0)
-    com_x = aux["outputs"]["com"][0][0]
-    return acc._replace(
-        leg_collisions=acc.leg_collisions + jnp.where(live & legs & ~acc.legs_prev, 1, 0)
-        .astype(jnp.int32),
-        leg_contact_steps=acc.leg_contact_steps + jnp.where(live & legs, 1, 0).astype(jnp.int32),
-        legs_prev=jnp.where(live, legs, acc.legs_prev),
-        clearance_min=jnp.where(ss, jnp.minimum(acc.clearance_min, clearance), acc.clearance_min),
-        com_x_half=jnp.where(live & (k == run.k_half), com_x, acc.com_x_half),
-        com_x_end=jnp.where(live, com_x, acc.com_x_end))
-
-
-def _step(pl: Plant, run: Run, params, push: Push, carry, k):
-    """One control step of one rollout; returns the new carry and this step's record."""
-    dx, last_u, acc, gait = carry
-    sc = run.scenario
-    dt = pl.cfg.control_dt
-    inside = k < run.n_steps
-    tau = k * dt - sc.settle
-    q, v = dx.qpos[pl.qpos_idx], dx.qvel[pl.qvel_idx]
-    domain, start = None, pl.start
-    if pl.walking:
-        domain = walking.gait_domain(gait, jnp.zeros((), q.dtype), run.speed,
-                                     jnp.asarray(walking.STEP_WIDTH, q.dtype), xp=jnp)
-        v = walking.rigid_spring_velocity(pl.model, q, v, domain["stance"])
-        start = {**pl.start, "settle": sc.settle}
-    u, lam, res, aux = _control(pl, sc, params, q, v, tau, last_u, start, domain)
-    dx_new = _physics(pl, dx, u, push, tau)
-    live = acc.alive & inside
-    acc = _update(pl, acc, live, tau, q, u, lam, res, aux, dx_new, domain)
-    if pl.walking:
-        soles, legs = sole_forces_and_leg_contact(pl, dx_new)
-        sites = dx_new.site_xpos
-        swing_force = jnp.where(gait.stance > 0, soles[1], soles[0])
-        new, _ = walking.gait_step(gait, tau, dt, sites[pl.sole_sites[0]],
-                                   sites[pl.sole_sites[1]], swing_force, pl.weight, xp=jnp)
-        acc = _walk_update(pl, acc, live, k, tau, run, aux, new, legs, dx_new)
-        gait = jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b), new, gait)
-    fell_now = live & _fallen(pl, dx_new)
+    loop = jnp.max(jnp.linalg.norm(sites[pl.tip_sites] - sites[pl.anchor_sites], axis=-1))
+    plant = metrics.plant_accumulate(carry.plant, live, rec, sites[pl.sole_sites], pl.sole0_xy,
+                                     loop, legs, xp=jnp)
+    fell_now = live & control_step.fallen(meas.q, meas.v, jnp)
     keep = live & ~fell_now
-    dx = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), dx_new, dx)
-    acc = acc._replace(alive=acc.alive & ~fell_now,
-                       fell_step=jnp.where(fell_now, k, acc.fell_step).astype(jnp.int32))
-    record = {"tau": tau, "alive": acc.alive, "qpos": dx.qpos, "u": u, "status": res.status,
-              "fallback": res.fallback, "qp_iterations": res.iterations,
-              "stance": gait.stance,
-              **{f"y_{n}": aux["outputs"][n][0] for n in aux["outputs"]},
-              **{f"yd_{n}": aux["outputs"][n][1] for n in aux["outputs"]},
-              **{f"h_{n}": aux["barrier_h"][n] for n in aux["barrier_h"]}}
-    return (dx, jnp.where(keep, u, last_u), acc, gait), record
+    new = Carry(dx=where(keep, dx_new, carry.dx), ctl=where(live, ctl, carry.ctl),
+                tally=where(live, tally, carry.tally), plant=plant,
+                alive=carry.alive & ~fell_now,
+                fell_step=jnp.where(fell_now, k, carry.fell_step).astype(jnp.int32),
+                meas=where(keep, meas, carry.meas), legs=jnp.where(keep, legs, carry.legs))
+    record = {"tau": rec.tau, "alive": new.alive, "qpos": new.dx.qpos, "u": out.u,
+              "status": rec.status, "fallback": rec.fallback, "qp_iterations": rec.iterations,
+              "stance": rec.stance, "bad_measurement": ~rec.ok,
+              **{f"y_{n}": y for n, y in rec.y.items()},
+              **{f"yd_{n}": yd for n, yd in rec.yd.items()},
+              **{f"h_{n}": h for n, h in rec.h.items()}}
+    return new, record
 
 
 def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, perturb_v,
-             n_steps, settle, speed, k_half):
-    """One rollout from the stand keyframe: (final Acc, final GaitState, decimated
-    records or None).
+             n_steps, settle, speed, t_half):
+    """One rollout from the stand keyframe: (final Carry, decimated records or None).
 
     Without records the time loop is a ``fori_loop`` over the run-time ``n_steps``; with
     records (every ``decimate``-th step, ``n_records`` of them: static) a scan."""
-    run = Run(dataclasses.replace(pl.scenario, settle=settle), n_steps, speed, k_half)
+    dtype = pl.data0.qvel.dtype
+    run = Run(control_step.RunValues(jnp.asarray(settle, dtype), jnp.asarray(speed, dtype),
+                                     jnp.asarray(t_half, dtype)), n_steps)
     dx = pl.data0.replace(qvel=pl.data0.qvel + perturb_v)
-    dtype = dx.qvel.dtype
-    gait = walking.GaitState.standing(jnp, dtype)
-    carry = (dx, jnp.zeros(pl.model.nu, dtype), _acc0(pl, dtype), gait)
+    meas, legs = _sense(pl, dx, 0.0)
+    carry = Carry(dx, *control_step.init_state(pl.ctx, meas.q, meas.v, jnp, dtype),
+                  metrics.plant_init(jnp, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
+                  meas, legs)
     step = functools.partial(_step, pl, run, params, push)
     if not decimate:
-        _, _, acc, gait = jax.lax.fori_loop(0, n_steps, lambda k, c: step(c, k)[0], carry)
-        return acc, gait, None
+        return jax.lax.fori_loop(0, n_steps, lambda k, c: step(c, k)[0], carry), None
 
     def outer(c, k0):
         c, rec = step(c, k0)
         c = jax.lax.fori_loop(k0 + 1, k0 + decimate, lambda k, cc: step(cc, k)[0], c)
         return c, rec
 
-    (_, _, acc, gait), recs = jax.lax.scan(outer, carry, decimate * jnp.arange(n_records))
-    return acc, gait, recs
+    return jax.lax.scan(outer, carry, decimate * jnp.arange(n_records))
 
 
 @functools.lru_cache(maxsize=16)
@@ -526,50 +412,18 @@ def default_chunk(backend: str | None = None, n_devices: int | None = None) -> i
     return CPU_CHUNK if backend == "cpu" and n_devices == 1 else None
 
 
-def _finish(pl: Plant, acc: Acc, gait, n_steps: int, k_half: int) -> dict:
-    """Acc and GaitState (batched, numpy) -> flat metric columns, names as in
-    metrics.json."""
-    sc, cfg = pl.scenario, pl.cfg
-    out = {"fell": ~acc.alive, "fell_time_s": np.where(acc.alive, np.nan,
-                                                      acc.fell_step * cfg.control_dt),
-           "qp_solved": acc.n_none, "qp_failed": acc.n_failed, "fallbacks": acc.n_relaxed,
-           # +inf: never evaluated (no motion phase reached) -> NaN; -inf (no normal force
-           # under the feet, as in the MuJoCo loop's metric) is kept
-           "zmp_margin_min": np.where(acc.zmp_min == np.inf, np.nan, acc.zmp_min),
-           "foot_slip_max": acc.slip_max, "torque_ratio_max": acc.torque_max,
-           "loop_residual_max": acc.loop_max}
-    for o in sc.outputs:
-        cnt = acc.track_n[o.name]
-        out[f"tracking_rms.{o.name}"] = np.where(
-            cnt > 0, np.sqrt(acc.track_sq[o.name] / np.maximum(cnt, 1)), np.nan)
-    for name, h in acc.h_min.items():
-        out[f"barrier_min.{name}"] = np.where(h == np.inf, np.nan, h)
-    if pl.walking:
-        # the second half of the walk, as metrics.summarize (NaN for a fallen rollout, whose
-        # walk ended early, and for walks too short to have two halves)
-        dt = cfg.control_dt
-        span = (n_steps - 1) * dt - k_half * dt
-        ok = acc.alive & (k_half >= 0)
-        out["avg_forward_speed"] = np.where(ok, (acc.com_x_end - acc.com_x_half)
-                                            / max(span, 1e-9), np.nan)
-        out["steps_taken"] = gait.steps
-        out["leg_collisions"] = acc.leg_collisions
-        out["leg_contact_steps"] = acc.leg_contact_steps
-        out["swing_clearance_min"] = np.where(acc.clearance_min == np.inf, np.nan,
-                                              acc.clearance_min)
-        out["missed_touchdowns"] = gait.missed
+# the metric columns of a batch: metrics.finalize's, less the per-component tracking and
+# the torso pitch extremes (metrics.json of a single run has them)
+_SINGLE_RUN_ONLY = ("tracking_rms_components.", "torso_pitch_")
+
+
+def _finish(pl: Plant, final: Carry) -> dict:
+    """The final Carry (batched, numpy) -> flat metric columns, names as in metrics.json."""
+    out = metrics.finalize(final.tally.acc, final.plant, ~final.alive,
+                           final.ctl.gait if pl.walking else None)
+    out = {k: v for k, v in out.items() if not k.startswith(_SINGLE_RUN_ONLY)}
+    out["fell_time_s"] = np.where(final.alive, np.nan, final.fell_step * pl.cfg.control_dt)
     return {k: np.asarray(v) for k, v in out.items()}
-
-
-def half_walk_step(n_steps: int, settle: float, dt: float) -> int:
-    """The control step where the second half of the motion begins (t >= midpoint of the
-    motion's first and last step times), -1 if the motion has fewer than 3 steps: the
-    window of ``metrics.summarize``'s avg_forward_speed, with the same float operations."""
-    t = np.arange(n_steps) * dt
-    tw = t[t - settle >= 0]
-    if tw.size <= 2:
-        return -1
-    return int(np.searchsorted(t, tw[0] + 0.5 * (tw[-1] - tw[0])))
 
 
 def _pad(tree, batch: int, padded: int):
@@ -642,13 +496,13 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     padded = -(-batch // ndev) * ndev
     args = _shard(_pad((params, push, perturb_v), batch, padded))
     n_steps, settle = pl.schedule(cfg)
-    k_half = half_walk_step(n_steps, settle, cfg.control_dt)
+    t_half = metrics.half_time(n_steps, settle, cfg.control_dt)
     dec = int(cfg.decimate)
     ch = resolve_chunk(chunk, padded, default_chunk(n_devices=ndev)) if ndev == 1 else None
     fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0, ch)
     with jax_qp.blas_threads(1):      # see safewbc_jax/__init__.py
-        acc, gait, recs = fn(*args, jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle),
-                             jnp.asarray(cfg.speed), jnp.asarray(k_half, jnp.int32))
-        acc, gait, recs = jax.tree_util.tree_map(lambda a: np.asarray(a)[:batch],
-                                                 (acc, gait, recs))
-    return _finish(pl, acc, gait, n_steps, k_half), recs
+        final, recs = fn(*args, jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle),
+                         jnp.asarray(cfg.speed), jnp.asarray(t_half))
+        final = final._replace(dx=None)
+        final, recs = jax.tree_util.tree_map(lambda a: np.asarray(a)[:batch], (final, recs))
+    return _finish(pl, final), recs

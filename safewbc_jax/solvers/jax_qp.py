@@ -27,7 +27,9 @@ solved, per instance, in three stages.
    z >= 0; the bounds are kept as bounds. The Newton system is reduced to the n x n
    matrix  H = P + G' W G + diag(z_u/t_u + z_l/t_l) (+ a 1e-12 regularisation, scaled)
    and factored by a dense Cholesky, once per iteration for the predictor and the
-   corrector. The problem is scaled first: variables by half their box width, each row of
+   corrector. Every factorisation of the controller's path goes through
+   ``solvers/lapack_batched.py``: under vmap, jaxlib's LAPACK kernels in sub-batches small
+   enough to run inline (one big batched call can deadlock XLA's CPU thread pool). The problem is scaled first: variables by half their box width, each row of
    G to unit max-norm, the cost to a unit max-norm Hessian/gradient.
 
    The fallback's relaxed problem (``relax.relax_soft_rows``: a slack s_i >= 0 on each soft
@@ -102,6 +104,7 @@ from jax import lax
 
 from safewbc_jax.chunking import chunked, resolve_chunk
 from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers import lapack_batched as lb
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN
 from safewbc_jax.solvers.status import INFEASIBLE, MAX_ITER, NUMERICAL, SOLVED
 
@@ -240,29 +243,6 @@ def _scale_problem(P, q, G, h, lb, ub, sig, rho, c):
                rho=jnp.where(sig > 0, rho * cs / er ** 2, 1.0).astype(dt),
                c=jnp.where(sig > 0, c * cs / er, 0.0).astype(dt))
     return box, _Scale(sx=sx, er=er, cs=cs)
-
-
-def _after(a, dep):
-    """``a`` (a pytree) made to depend on ``dep`` by an exact no-op (+ 0 * a finite scalar
-    computed from ``dep``), so that nothing computed from the result starts before
-    ``dep`` is ready.
-
-    Why: jaxlib's CPU LAPACK kernels (Cholesky, triangular solve, LU) split a batch over
-    XLA's intra-op thread pool and block waiting for it; when two such kernels are
-    independent in the graph, XLA may run them at once and on a 2-thread pool they wait
-    for each other forever (observed with jaxlib 0.10.2: the process hangs at 0% CPU in
-    ``jax::ParallelBatchMap``). The solver chains its stages (IPM -> polish -> relaxed
-    solve) so that no two of its batched LAPACK calls are independent. (An optimisation
-    barrier is not enough: the CPU runtime schedules by buffer dependencies.)"""
-    leaves = [x for x in jax.tree_util.tree_leaves(dep)
-              if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)]
-    s = sum(jnp.sum(jnp.where(jnp.isfinite(x), x, 0.0)) for x in leaves) * 0.0
-
-    def tie(x):
-        if jnp.issubdtype(x.dtype, jnp.floating):
-            return x + s.astype(x.dtype)
-        return x
-    return jax.tree_util.tree_map(tie, a)
 
 
 class _It(NamedTuple):
@@ -423,7 +403,7 @@ def _newton_factory(x: _PIt, pb: _Box, pk: _Pk, st: Settings):
     W = jnp.concatenate([jnp.where(sg, DG * (pb.rho + ys) / E, DG), Dc[m:]])
     H = (pb.P + (pb.G.T * W[None, :m]) @ pb.G
          + jnp.diag(W[m:m + n] + W[m + n:] + st.reg))
-    L = jnp.linalg.cholesky(H)
+    L = lb.cholesky(H)
     zeros2n = jnp.zeros(2 * n, dt)
 
     def solve(rd, rs, rp, rc):
@@ -431,7 +411,7 @@ def _newton_factory(x: _PIt, pb: _Box, pk: _Pk, st: Settings):
         a = jnp.where(on_c, (lc * rp - rc_c) / vc, 0.0)
         rhs_s = jnp.where(sg, -rs + a[:m] - rcs / s_s, 0.0)
         corr = jnp.concatenate([jnp.where(sg, DG * rhs_s / E, 0.0), zeros2n])
-        du = jsl.cho_solve((L, True), -rd - _ct(pb.G, a - corr))
+        du = lb.cho_solve(L, -rd - _ct(pb.G, a - corr))
         Cdu = _c(pb.G, du)
         ds = jnp.where(sg, (DG * Cdu[:m] + rhs_s) / E, 0.0)
         sds = jnp.concatenate([pk.sigf * ds, zeros2n])
@@ -465,7 +445,7 @@ def _initial_point(pb: _Box, pk: _Pk, st: Settings) -> _PIt:
     H0 = (pb.P + Gon.T @ Gon + jnp.diag(box_on.astype(dt))
           + (st.reg + 1e-8) * jnp.eye(n, dtype=dt))
     r0 = -pb.q + Gon.T @ jnp.where(on, pb.h, 0.0) + jnp.where(box_on, centre, 0.0)
-    u0 = jsl.cho_solve((jnp.linalg.cholesky(H0), True), r0)
+    u0 = lb.cho_solve(lb.cholesky(H0), r0)
     Cu = _c(pb.G, u0)
     s0 = jnp.where(sg, jnp.maximum(Cu[:m] - pb.h, 0.0), 0.0)
     sig_s = jnp.concatenate([pk.sigf * s0, jnp.zeros(2 * n, dt)])
@@ -527,10 +507,7 @@ def _ipm(pb: _Box, st: Settings, active):
 
 def _tri(L, b, trans=False):
     """L^-1 b (or L^-T b) for lower-triangular L; b a vector or a matrix."""
-    vec = b.ndim == 1
-    bb = b[:, None] if vec else b
-    x = lax.linalg.triangular_solve(L, bb, left_side=True, lower=True, transpose_a=trans)
-    return x[:, 0] if vec else x
+    return lb.solve_lower_t(L, b) if trans else lb.solve_lower(L, b)
 
 
 def _kkt_factory(pb: _Box, dreg, refine: int = 2):
@@ -552,7 +529,7 @@ def _kkt_factory(pb: _Box, dreg, refine: int = 2):
     n, m = pb.P.shape[0], pb.G.shape[0]
     eye = jnp.eye(n, dtype=dt)
     pn = jnp.max(jnp.abs(pb.P))
-    L = jnp.linalg.cholesky(pb.P + 10 * dreg * jnp.maximum(pn, 1e-30) * eye)
+    L = lb.cholesky(pb.P + 10 * dreg * jnp.maximum(pn, 1e-30) * eye)
     Li = _tri(L, eye)
     A = jnp.concatenate([pb.G, eye], axis=0)            # rows, then bounds: (m + n, n)
     C = Li @ A.T                                        # (n, m + n)
@@ -576,10 +553,10 @@ def _kkt_factory(pb: _Box, dreg, refine: int = 2):
         Dex = jnp.where(rel, 1.0 / rho_w, 0.0)
         S = Cw.T @ Cw
         dg = jnp.where(act, dreg * (jnp.diagonal(S) + 1e-30 * gdiag), jnp.where(rel, Dex, 1.0))
-        Ls = jnp.linalg.cholesky(S + jnp.diag(dg))
+        Ls = lb.cholesky(S + jnp.diag(dg))
 
         def kkt(wv, e2):
-            zw = jsl.cho_solve((Ls, True), jnp.where(valid, Cw.T @ wv - e2, 0.0))
+            zw = lb.cho_solve(Ls, jnp.where(valid, Cw.T @ wv - e2, 0.0))
             zw = jnp.where(valid, zw, 0.0)
             return Li.T @ (wv - Cw @ zw), zw
 
@@ -647,9 +624,6 @@ def _polish(it: _It, pb: _Box, st: Settings, active, kmax: int):
     pscale = 1.0 + _inf_norm(jnp.where(on, pb.h, 0.0), jnp.where(pb.lb_on, pb.lb, 0.0),
                              jnp.where(pb.ub_on, pb.ub, 0.0))
 
-    # The factorisations below depend on pb only: without this tie XLA may run them
-    # concurrently with the IPM's (see _after).
-    pb = _after(pb, it.u)
     kkt_solve = _kkt_factory(pb, dreg)
 
     def body(c):
@@ -844,11 +818,10 @@ def _nominal(qp: QP, box, lift, st: Settings) -> _Nominal:
                     polish_iterations=kp)
 
 
-def _relaxed(qp: QP, box, lift, st: Settings, need, after) -> _Relaxed:
+def _relaxed(qp: QP, box, lift, st: Settings, need) -> _Relaxed:
     """The relaxed QP (soft rows with slack) for the instances with ``need``; the others
-    start stopped. ``after``: a value of the nominal solve that this one waits for."""
-    # the relaxed solve starts after the nominal one has finished (see _after)
-    P, q, G, h, lb, ub, soft = _after(box, after)
+    start stopped."""
+    P, q, G, h, lb, ub, soft = box
     ur, sr, rstatus, kr, rpol, kpr = _solve_box(P, q, G, h, lb, ub, soft, st, need, relax=True)
     xr = _to_full(ur, lift)
     sr = jnp.where(soft > 0, jnp.maximum(sr, 0.0), 0.0)[:qp.G.shape[0]]
@@ -926,11 +899,10 @@ def _reduce_controller(qp: QP, nv: int, nu: int, bounded, p_blockdiag: bool = Fa
     D = A[nv:, il]
     hq = -qp.b[:nv]
     r = qp.b[nv:]
-    Lm = lax.linalg.cholesky(M, symmetrize_input=False)
-    sol = jsl.cho_solve((Lm, True), jnp.concatenate([Bm, Jt, hq[:, None]], axis=1))
+    Lm = lb.cholesky(M)
+    sol = lb.cho_solve(Lm, jnp.concatenate([Bm, Jt, hq[:, None]], axis=1))
     a, c, e = sol[:, :nu], sol[:, nu:-1], sol[:, -1]
-    lu = jsl.lu_factor(Jr @ c + D)
-    rhs = jsl.lu_solve(lu, jnp.concatenate([(r + Jr @ e)[:, None], -(Jr @ a)], axis=1))
+    rhs = lb.solve(Jr @ c + D, jnp.concatenate([(r + Jr @ e)[:, None], -(Jr @ a)], axis=1))
     lam0, L = rhs[:, 0], rhs[:, 1:]
     Nq = a + c @ L
     x0q = c @ lam0 - e
@@ -1021,7 +993,7 @@ def _single(qp: QP, box, lift, ok_red, st: Settings) -> Result:
     nom = nom._replace(status=jnp.where(ok_red, nom.status, NUMERICAL).astype(jnp.int32))
     rel = None
     if st.fallback:
-        rel = _relaxed(qp, box, lift, st, (nom.status != SOLVED) & ok_red, nom.x)
+        rel = _relaxed(qp, box, lift, st, (nom.status != SOLVED) & ok_red)
     return _finish(qp, nom, rel)
 
 
@@ -1073,8 +1045,8 @@ def _batch_impl(qps: QP, reducer, st: Settings) -> Result:
         need = (nom.status != SOLVED) & ok_red
         rel = lax.cond(
             jnp.any(need),
-            lambda: jax.vmap(lambda qp, b, l, nd, a: _relaxed(qp, b, l, st, nd, a))(
-                qps, box, lift, need, nom.x),
+            lambda: jax.vmap(lambda qp, b, l, nd: _relaxed(qp, b, l, st, nd))(
+                qps, box, lift, need),
             lambda: jax.vmap(_relaxed_skipped)(qps))
     return jax.vmap(_finish)(qps, nom, rel) if rel is not None else \
         jax.vmap(lambda qp, n_: _finish(qp, n_, None))(qps, nom)
