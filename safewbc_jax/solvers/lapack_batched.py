@@ -60,105 +60,72 @@ def _map_sub_batches(fn, cost, axis_size, args):
                                   out)
 
 
-def _batched(args, in_batched, axis_size):
+def _broadcast(args, in_batched, axis_size):
     return tuple(a if b else jnp.broadcast_to(a, (axis_size,) + a.shape)
                  for a, b in zip(args, in_batched))
 
 
-def _columns(b, batched: bool) -> int:
-    return 1 if b.ndim == (2 if batched else 1) else b.shape[-1]
-
-
 def _as_matrix(fn):
-    """fn(a, B) for B a stack of matrices, applied to a stack of vectors too."""
+    """fn(a, B) for B a (stack of) matrices, applied to a (stack of) vectors too."""
     def g(a, b):
         return fn(a, b) if b.ndim == a.ndim else fn(a, b[..., None])[..., 0]
     return g
 
 
-# ------------------------------------------------------------------------ Cholesky
+def _sub_batched(plain, cost):
+    """``plain`` as a custom_vmap function whose vmap rule runs it on sub-batches;
+    ``cost(*batched args)``: jaxlib's FLOP estimate per matrix of the call it makes."""
+    f = custom_vmap(plain)
 
-@custom_vmap
-def cholesky(a):
-    """Lower Cholesky factor of a symmetric positive definite matrix (NaN where it is
-    not), ``jnp.linalg.cholesky``."""
-    return jnp.linalg.cholesky(a)
+    @f.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        args = _broadcast(args, in_batched, axis_size)
+        return _map_sub_batches(plain, cost(*args), axis_size, args), True
 
-
-@cholesky.def_vmap
-def _cholesky_vmap(axis_size, in_batched, a):
-    (a,) = _batched((a,), in_batched, axis_size)
-    n = a.shape[-1]
-    return _map_sub_batches(jnp.linalg.cholesky, n ** 3 // 3, axis_size, (a,)), True
+    return f
 
 
-# ------------------------------------------------------------------ triangular solves
+def _rhs_columns(b) -> int:
+    """Right-hand sides of a batched b: (batch, n) one, (batch, n, k) k."""
+    return 1 if b.ndim == 2 else b.shape[-1]
 
-def _cho(L, b):
+
+def _cholesky(a):
+    """Lower Cholesky factor of a symmetric positive definite matrix, read from its lower
+    triangle (NaN where it is not positive definite), as ``jnp.linalg.cholesky``."""
+    return jnp.linalg.cholesky(a, symmetrize_input=False)
+
+
+@_as_matrix
+def _cho_solve(L, b):
+    """a^-1 b from the lower Cholesky factor L of a; b a vector or a matrix."""
     return jsl.cho_solve((L, True), b)
 
 
-@custom_vmap
-def cho_solve(L, b):
-    """a^-1 b from the lower Cholesky factor L of a; b a vector or a matrix."""
-    return _cho(L, b)
-
-
-@cho_solve.def_vmap
-def _cho_solve_vmap(axis_size, in_batched, L, b):
-    L, b = _batched((L, b), in_batched, axis_size)
-    n, k = L.shape[-1], _columns(b, True)
-    return _map_sub_batches(_as_matrix(_cho), n * n * k, axis_size, (L, b)), True
-
-
-def _tri(L, b):
+@_as_matrix
+def _solve_lower(L, b):
+    """L^-1 b for lower-triangular L; b a vector or a matrix."""
     return lax.linalg.triangular_solve(L, b, left_side=True, lower=True)
 
 
-def _tri_t(L, b):
+@_as_matrix
+def _solve_lower_t(L, b):
+    """L'^-1 b for lower-triangular L; b a vector or a matrix."""
     return lax.linalg.triangular_solve(L, b, left_side=True, lower=True, transpose_a=True)
 
 
-@custom_vmap
-def solve_lower(L, b):
-    """L^-1 b for lower-triangular L; b a vector or a matrix."""
-    return _as_matrix(_tri)(L, b)
-
-
-@solve_lower.def_vmap
-def _solve_lower_vmap(axis_size, in_batched, L, b):
-    L, b = _batched((L, b), in_batched, axis_size)
-    n, k = L.shape[-1], _columns(b, True)
-    return _map_sub_batches(_as_matrix(_tri), n * n * k, axis_size, (L, b)), True
-
-
-@custom_vmap
-def solve_lower_t(L, b):
-    """L'^-1 b for lower-triangular L; b a vector or a matrix."""
-    return _as_matrix(_tri_t)(L, b)
-
-
-@solve_lower_t.def_vmap
-def _solve_lower_t_vmap(axis_size, in_batched, L, b):
-    L, b = _batched((L, b), in_batched, axis_size)
-    n, k = L.shape[-1], _columns(b, True)
-    return _map_sub_batches(_as_matrix(_tri_t), n * n * k, axis_size, (L, b)), True
-
-
-# --------------------------------------------------------------------- general solve
-
-def _lu(a, b):
+@_as_matrix
+def _solve(a, b):
+    """a^-1 b for a square matrix a (LU with partial pivoting); b a vector or a matrix."""
     return jnp.linalg.solve(a, b)
 
 
-@custom_vmap
-def solve(a, b):
-    """a^-1 b for a square matrix a (LU with partial pivoting); b a vector or a matrix."""
-    return _as_matrix(_lu)(a, b)
+def _tri_cost(L, b):
+    return L.shape[-1] ** 2 * _rhs_columns(b)
 
 
-@solve.def_vmap
-def _solve_vmap(axis_size, in_batched, a, b):
-    a, b = _batched((a, b), in_batched, axis_size)
-    n, k = a.shape[-1], _columns(b, True)
-    return _map_sub_batches(_as_matrix(_lu), max(n ** 3, n * n * k), axis_size, (a, b)), True
+cholesky = _sub_batched(_cholesky, lambda a: a.shape[-1] ** 3 // 3)
+cho_solve = _sub_batched(_cho_solve, _tri_cost)
+solve_lower = _sub_batched(_solve_lower, _tri_cost)
+solve_lower_t = _sub_batched(_solve_lower_t, _tri_cost)
+solve = _sub_batched(_solve, lambda a, b: max(a.shape[-1] ** 3, _tri_cost(a, b)))
