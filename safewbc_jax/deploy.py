@@ -424,7 +424,7 @@ class Controller:
             q, v = np.asarray(meas.q, float), np.asarray(meas.v, float)
             f = (np.zeros(2) if meas.sole_force is None and not self.walking
                  else np.asarray(meas.sole_force, float))
-            if q.shape != (37,) or v.shape != (36,) or f.shape != (2,):
+            if q.shape != (self.model.nq,) or v.shape != (self.model.nv,) or f.shape != (2,):
                 return None
             return np.concatenate([q, v, f, [float(meas.t)]])
         except (TypeError, ValueError):

@@ -61,8 +61,8 @@ def _fns():
         "cho_solve": (lambda L, b: lb.cho_solve(L, b), lambda L, b: jsl.cho_solve((L, True), b)),
         "solve_lower": (lb.solve_lower,
                         lambda L, b: jsl.solve_triangular(L, b, lower=True)),
-        "solve_lower_t": (lb.solve_lower_t,
-                          lambda L, b: jsl.solve_triangular(L, b, lower=True, trans="T")),
+        "cholesky_lower": (lb.cholesky_lower,
+                           lambda a: jnp.linalg.cholesky(a, symmetrize_input=False)),
         "solve": (lb.solve, jnp.linalg.solve),
     }
 
@@ -78,7 +78,7 @@ def test_sub_batches_equal_one_batched_call(batch, n, k):
     B = jnp.asarray(rng.normal(size=(batch, n, k) if k else (batch, n)))
     L = jnp.linalg.cholesky(S)
     args = {"cholesky": (S,), "cho_solve": (L, B), "solve_lower": (L, B),
-            "solve_lower_t": (L, B), "solve": (G, B)}
+            "cholesky_lower": (S,), "solve": (G, B)}
     for name, (f, ref) in _fns().items():
         got = np.asarray(jax.jit(jax.vmap(f))(*args[name]))
         want = np.asarray(jax.vmap(ref)(*args[name]))
@@ -101,6 +101,20 @@ def test_unbatched_argument_is_broadcast():
     got = jax.vmap(lb.cho_solve, in_axes=(None, 0))(L, B)
     want = jax.vmap(lambda b: jsl.cho_solve((L, True), b))(B)
     assert np.max(np.abs(np.asarray(got - want))) <= 1e-12 * np.max(np.abs(np.asarray(want)))
+
+
+def test_cholesky_lower_reads_only_the_lower_triangle():
+    """cholesky_lower (the elimination's, of M as built) ignores the strict upper
+    triangle; cholesky factors the symmetric part, as jnp.linalg.cholesky does."""
+    rng = np.random.default_rng(2)
+    S = np.stack([_spd(rng, 12) for _ in range(70)])
+    junk = jnp.asarray(S + np.triu(rng.normal(size=S.shape), 1) * 1e-3)
+    want = np.linalg.cholesky(S)
+    got = np.asarray(jax.vmap(lb.cholesky_lower)(junk))
+    assert np.max(np.abs(got - want)) <= 1e4 * 100 * EPS
+    sym = np.asarray(jax.vmap(lb.cholesky)(junk))
+    np.testing.assert_array_equal(sym, np.asarray(jax.vmap(jnp.linalg.cholesky)(junk)))
+    assert np.max(np.abs(sym - want)) > 1e-6    # the upper triangle did count there
 
 
 def test_failures_are_nan_not_exceptions():

@@ -29,8 +29,9 @@ solved, per instance, in three stages.
    and factored by a dense Cholesky, once per iteration for the predictor and the
    corrector. Every factorisation of the controller's path goes through
    ``solvers/lapack_batched.py``: under vmap, jaxlib's LAPACK kernels in sub-batches small
-   enough to run inline (one big batched call can deadlock XLA's CPU thread pool). The problem is scaled first: variables by half their box width, each row of
-   G to unit max-norm, the cost to a unit max-norm Hessian/gradient.
+   enough to run inline (one big batched call can deadlock XLA's CPU thread pool). The
+   problem is scaled first: variables by half their box width, each row of G to unit
+   max-norm, the cost to a unit max-norm Hessian/gradient.
 
    The fallback's relaxed problem (``relax.relax_soft_rows``: a slack s_i >= 0 on each soft
    row, cost rho/2 s_i^2 + rho_lin s_i) is solved by the same iteration with the slacks
@@ -505,11 +506,6 @@ def _ipm(pb: _Box, st: Settings, active):
     return _unpack(out.x, m, n), status, out.k
 
 
-def _tri(L, b, trans=False):
-    """L^-1 b (or L^-T b) for lower-triangular L; b a vector or a matrix."""
-    return lb.solve_lower_t(L, b) if trans else lb.solve_lower(L, b)
-
-
 def _kkt_factory(pb: _Box, dreg, refine: int = 2):
     """Range-space solver for the equality-constrained QPs of working sets (fixed shapes).
 
@@ -530,7 +526,7 @@ def _kkt_factory(pb: _Box, dreg, refine: int = 2):
     eye = jnp.eye(n, dtype=dt)
     pn = jnp.max(jnp.abs(pb.P))
     L = lb.cholesky(pb.P + 10 * dreg * jnp.maximum(pn, 1e-30) * eye)
-    Li = _tri(L, eye)
+    Li = lb.solve_lower(L, eye)
     A = jnp.concatenate([pb.G, eye], axis=0)            # rows, then bounds: (m + n, n)
     C = Li @ A.T                                        # (n, m + n)
     gdiag = jnp.max(jnp.sum(C * C, axis=0))
@@ -899,7 +895,7 @@ def _reduce_controller(qp: QP, nv: int, nu: int, bounded, p_blockdiag: bool = Fa
     D = A[nv:, il]
     hq = -qp.b[:nv]
     r = qp.b[nv:]
-    Lm = lb.cholesky(M)
+    Lm = lb.cholesky_lower(M)
     sol = lb.cho_solve(Lm, jnp.concatenate([Bm, Jt, hq[:, None]], axis=1))
     a, c, e = sol[:, :nu], sol[:, nu:-1], sol[:, -1]
     rhs = lb.solve(Jr @ c + D, jnp.concatenate([(r + Jr @ e)[:, None], -(Jr @ a)], axis=1))

@@ -91,8 +91,14 @@ def _rhs_columns(b) -> int:
 
 
 def _cholesky(a):
+    """Lower Cholesky factor of the symmetric part (a + a')/2 of a positive definite
+    matrix (NaN where it is not positive definite): ``jnp.linalg.cholesky``."""
+    return jnp.linalg.cholesky(a)
+
+
+def _cholesky_lower(a):
     """Lower Cholesky factor of a symmetric positive definite matrix, read from its lower
-    triangle (NaN where it is not positive definite), as ``jnp.linalg.cholesky``."""
+    triangle only (no symmetrisation; NaN where it is not positive definite)."""
     return jnp.linalg.cholesky(a, symmetrize_input=False)
 
 
@@ -109,12 +115,6 @@ def _solve_lower(L, b):
 
 
 @_as_matrix
-def _solve_lower_t(L, b):
-    """L'^-1 b for lower-triangular L; b a vector or a matrix."""
-    return lax.linalg.triangular_solve(L, b, left_side=True, lower=True, transpose_a=True)
-
-
-@_as_matrix
 def _solve(a, b):
     """a^-1 b for a square matrix a (LU with partial pivoting); b a vector or a matrix."""
     return jnp.linalg.solve(a, b)
@@ -124,8 +124,9 @@ def _tri_cost(L, b):
     return L.shape[-1] ** 2 * _rhs_columns(b)
 
 
-cholesky = _sub_batched(_cholesky, lambda a: a.shape[-1] ** 3 // 3)
+_chol_cost = lambda a: a.shape[-1] ** 3 // 3  # noqa: E731
+cholesky = _sub_batched(_cholesky, _chol_cost)
+cholesky_lower = _sub_batched(_cholesky_lower, _chol_cost)
 cho_solve = _sub_batched(_cho_solve, _tri_cost)
 solve_lower = _sub_batched(_solve_lower, _tri_cost)
-solve_lower_t = _sub_batched(_solve_lower_t, _tri_cost)
 solve = _sub_batched(_solve, lambda a, b: max(a.shape[-1] ** 3, _tri_cost(a, b)))
