@@ -64,6 +64,9 @@ def single_robot_loop(n_steps: int, settle: float) -> tuple[float, float]:
 
 
 def main(argv=None) -> dict:
+    import safewbc_jax
+
+    safewbc_jax.enable_x64()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 16, 128, 1024])
     ap.add_argument("--duration", type=float, default=0.05,

@@ -25,6 +25,9 @@ import time
 
 
 def main(argv=None) -> dict:
+    import safewbc_jax
+
+    safewbc_jax.enable_x64()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="squat")
     ap.add_argument("--steps", type=int, default=2000, help="control steps (1 kHz)")

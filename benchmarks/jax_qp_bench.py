@@ -103,6 +103,9 @@ def generate(n):
 
 
 def main(argv=None) -> dict:
+    import safewbc_jax
+
+    safewbc_jax.enable_x64()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 256, 1024])
     ap.add_argument("--chunks", type=int, nargs="+", default=None,

@@ -1,8 +1,11 @@
 """safewbc-jax: safe whole-body task-space control (A-ECBF inverse-dynamics QP) for Digit.
 
-Importing the package switches JAX to 64-bit floats (``jax_enable_x64``): the controller's
-robot terms and QPs are float64 on the CPU. Arrays made with an explicit float32 dtype
-(the accelerator option of the batched path) stay float32.
+The controller's robot terms and QPs are float64: call ``safewbc_jax.enable_x64()`` once,
+before building a model or a controller (the ``safewbc`` command and the examples do).
+Importing the package changes no JAX setting; where 64-bit floats are needed and off,
+``robot.from_mujoco`` (every path builds its model there) raises an error that says so.
+Arrays made with an explicit float32 dtype (the accelerator option of the batched path)
+stay float32. ``JAX_ENABLE_X64=1`` in the environment does the same as ``enable_x64()``.
 """
 
 import os
@@ -16,6 +19,20 @@ import os
 # run time.)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import jax  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
+def enable_x64() -> None:
+    """Switch JAX to 64-bit floats for this process (``jax_enable_x64``), as the
+    controller needs. It is JAX's global setting: it affects other JAX code in the
+    process too, which is why importing the package does not do it."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def require_x64(what: str) -> None:
+    """RuntimeError unless JAX's 64-bit floats are on, naming ``what`` needs them."""
+    import jax
+
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(f"{what} needs JAX's 64-bit floats: call safewbc_jax.enable_x64() "
+                           "first (or set JAX_ENABLE_X64=1)")

@@ -4,21 +4,21 @@ This module follows the paper's section "Exponential control barrier functions".
 set C = {x : h(x) >= 0} is described by a smooth barrier h of relative degree r_b. Its
 lower derivatives are stacked into
 
-    eta_b = [h, h^(1), ..., h^(r_b - 1)]                                  (eta_b)
+    eta_b = [h, h^(1), ..., h^(r_b - 1)]                                  (19)
 
-which obeys the integrator chain eta_dot = F eta + G nu, h = C eta (eqs. hlinearsys,
-houtput), with nu = h^(r_b). Choosing K_alpha so that the closed loop
+which obeys the integrator chain eta_dot = F eta + G nu, h = C eta (eqs. 20, 21), with
+nu = h^(r_b). Choosing K_alpha so that the closed loop
 eta_dot = (F - G K_alpha) eta has its roots at -p_1, ..., -p_rb and asking
 
-    nu >= -K_alpha eta                                                     (ECBFdef)
+    nu >= -K_alpha eta                                                     (22)
 
 gives, by the comparison lemma, h(x(t)) >= C e^{(F - G K_alpha) t} eta(x_0). Theorem 1
-says when this bound is itself non-negative (see :func:`admissible_pole_bounds`).
+(eqs. 23-25) says when this bound is itself non-negative (see :func:`admissible_pole_bounds`).
 
 In the inverse-dynamics QP the input is the generalized acceleration q_ddot (the
 decision variable X = [q_ddot, u, lambda]), and the certificate becomes the A-ECBF row
 
-    L_F^rb h + L_G L_F^(rb-1) h q_ddot >= -K_alpha eta                     (AECBF)
+    L_F^rb h + L_G L_F^(rb-1) h q_ddot >= -K_alpha eta                     (28)
 
 For a barrier h(q) of the configuration (relative degree 2 in q_ddot):
     eta = [h, J_h v],   L_F^2 h = J_h_dot v,   L_G L_F h = J_h,
@@ -28,8 +28,7 @@ For a barrier h(q, v) of the state (relative degree 1):
 so the row reads dh/dv q_ddot >= -K_alpha eta - L_F h.
 
 Sign convention: every row here is returned as ``a_row @ q_ddot >= b`` ("greater or
-equal", the paper's form). The QP pytree of :mod:`safewbc_jax.qp_types` wants
-``G X <= h``; :func:`as_qp_inequalities` flips the sign and pads the u, lambda columns.
+equal", the paper's form); ``qp.assemble`` turns them into rows of G X <= h.
 
 Configuration derivatives are taken on the floating-base manifold with the helpers of
 :mod:`safewbc_jax.spatial` (MuJoCo's q / v convention), so the rows are consistent with
@@ -40,9 +39,7 @@ static. :func:`check_poles` is plain numpy, meant to run once before compiling.
 
 from __future__ import annotations
 
-import dataclasses
-from functools import partial
-from typing import Callable, NamedTuple, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -89,7 +86,7 @@ def k_alpha_from_poles(poles):
 
 
 def integrator_chain(r: int, dtype=jnp.float64):
-    """(F, G, C) of the chain eta_dot = F eta + G nu, h = C eta (eqs. hlinearsys, houtput):
+    """(F, G, C) of the chain eta_dot = F eta + G nu, h = C eta (eqs. 20, 21):
     F (r, r) with ones on the superdiagonal, G = e_r (r, 1), C = e_1^T (1, r)."""
     f = jnp.eye(r, k=1, dtype=dtype)
     g = jnp.zeros((r, 1), dtype).at[-1, 0].set(1.0)
@@ -107,7 +104,7 @@ def closed_loop_matrix(k_alpha):
 
 def comparison_bound(eta0, poles, t):
     """C e^{(F - G K_alpha) t} eta(x_0): the lower bound on h(x(t)) that the constraint
-    nu >= -K_alpha eta guarantees by the comparison lemma (ECBF definition, eq. ECBFdef).
+    nu >= -K_alpha eta guarantees by the comparison lemma (ECBF definition, eq. 22).
 
     ``t`` is a scalar time; vmap for a time grid. When the constraint is active for all
     t >= 0 (nu = -K_alpha eta) h(x(t)) equals this bound."""
@@ -250,7 +247,7 @@ def check_poles(name: str, eta0, poles, h_r0=None):
 # --------------------------------------------------------------------------------------
 
 class AECBFRow(NamedTuple):
-    """One A-ECBF inequality ``a_row @ q_ddot >= b`` (eq. AECBF) and its ingredients."""
+    """One A-ECBF inequality ``a_row @ q_ddot >= b`` (eq. 28) and its ingredients."""
 
     a_row: jax.Array  # (nv,)  L_G L_F^(r-1) h
     b: jax.Array      # ()     -K_alpha eta - L_F^r h
@@ -259,23 +256,12 @@ class AECBFRow(NamedTuple):
 
 
 def aecbf_inequality(eta, lf_r_h, lg_lf_h, k_alpha):
-    """Eq. (AECBF) rearranged: L_F^r h + L_G L_F^(r-1) h q_ddot >= -K_alpha eta  <=>
+    """Eq. (28) rearranged: L_F^r h + L_G L_F^(r-1) h q_ddot >= -K_alpha eta  <=>
     a_row @ q_ddot >= b with a_row = L_G L_F^(r-1) h, b = -K_alpha eta - L_F^r h.
 
     Algebraic, any relative degree; returns (a_row, b)."""
     b = -jnp.sum(jnp.asarray(k_alpha) * jnp.asarray(eta), axis=-1) - lf_r_h
     return jnp.asarray(lg_lf_h), b
-
-
-def aecbf_row_from_terms(h, J_h, J_h_dot_v, v, k_alpha):
-    """The A-ECBF row of a relative-degree-2 barrier h(q) from its kinematic terms (the
-    arm task's J_pz q_ddot + J_pz_dot v >= -K_alpha eta, eq. AECBF with
-    eta = [h, J_h v], L_F^2 h = J_h_dot v, L_G L_F h = J_h).
-
-    Returns (a_row, b) with a_row @ q_ddot >= b: a_row = J_h,
-    b = -k_0 h - k_1 J_h v - J_h_dot v."""
-    eta = jnp.stack([jnp.asarray(h), jnp.asarray(J_h) @ v])
-    return aecbf_inequality(eta, J_h_dot_v, J_h, k_alpha)
 
 
 def _check_scalar(val, what):
@@ -285,7 +271,7 @@ def _check_scalar(val, what):
 
 def barrier_lie_derivatives(h_fn, q, v, relative_degree: int = 2):
     """(eta, L_F^r h, L_G L_F^(r-1) h) of a barrier by automatic differentiation (eqs.
-    eta_b, CBF_eq), derivatives taken on the configuration manifold (spatial.integrate).
+    19, 26), derivatives taken on the configuration manifold (spatial.integrate).
 
     relative_degree 2: ``h_fn(q)``; eta = [h, J_h v], L_F^2 h = J_h_dot v (second
     derivative along q(t) = integrate(q, v t), i.e. with q_ddot = 0), L_G L_F h = J_h.
@@ -308,7 +294,7 @@ def barrier_lie_derivatives(h_fn, q, v, relative_degree: int = 2):
 
 
 def aecbf_row(h_fn, q, v, poles, relative_degree: int = 2) -> AECBFRow:
-    """The A-ECBF row a_row @ q_ddot >= b of eq. (AECBF) for the barrier ``h_fn`` at (q, v)
+    """The A-ECBF row a_row @ q_ddot >= b of eq. (28) for the barrier ``h_fn`` at (q, v)
     with the closed-loop roots -poles (K_alpha from :func:`k_alpha_from_poles`).
 
     ``h_fn(q)`` for relative degree 2, ``h_fn(q, v)`` for relative degree 1 (see
@@ -323,133 +309,8 @@ def aecbf_row(h_fn, q, v, poles, relative_degree: int = 2) -> AECBFRow:
     return AECBFRow(a_row=a_row, b=b, eta=eta, drift=drift)
 
 
-# --------------------------------------------------------------------------------------
-# Barrier descriptions and stacks of rows
-# --------------------------------------------------------------------------------------
-
-@partial(jax.tree_util.register_dataclass, data_fields=[],
-         meta_fields=["name", "h_fn", "relative_degree"])
-@dataclasses.dataclass(frozen=True)
-class Barrier:
-    """A safe set h >= 0: ``name`` (for messages), ``h_fn`` (``h_fn(q)`` for relative
-    degree 2, ``h_fn(q, v)`` for relative degree 1) and ``relative_degree``.
-
-    Static: a pytree without leaves, so a (list of) Barrier can be passed through
-    ``jax.jit`` as an ordinary argument and only its identity keys the compile cache."""
-
-    name: str
-    h_fn: Callable
-    relative_degree: int = 2
-
-    def __post_init__(self):
-        if self.relative_degree not in (1, 2):
-            raise ValueError(f"barrier {self.name!r}: relative_degree must be 1 or 2, got "
-                             f"{self.relative_degree}")
-
-    def eta(self, q, v):
-        """eta(x) = [h, ..., h^(r-1)] at (q, v) (eq. eta_b)."""
-        return barrier_lie_derivatives(self.h_fn, q, v, self.relative_degree)[0]
-
-    def row(self, q, v, poles) -> AECBFRow:
-        """The A-ECBF row (eq. AECBF) at (q, v), see :func:`aecbf_row`."""
-        return aecbf_row(self.h_fn, q, v, poles, self.relative_degree)
-
-
-def fist_height_barrier(model, side: str = "left", threshold: float = 0.195,
-                        reference: str = "torso") -> Barrier:
-    """The arm task's safe set h(q) = -p_z(q) - threshold >= 0 (section "Task: Arm motion
-    with height limits", h(q) = -p^L_z(q) - 0.195), p_z being the z coordinate of the
-    ``<side>-fist`` site in the ``reference`` frame (the torso base). Relative degree 2:
-    eta = [-p_z - threshold, -p_z_dot]. The fist must stay ``threshold`` below the
-    reference origin."""
-    if side not in ("left", "right"):
-        raise ValueError(f"side must be 'left' or 'right', got {side!r}")
-    from safewbc_jax import robot
-
-    frame = f"{side}-fist"
-    model.site_id(frame)  # fail early on a model without the sites
-    model.site_id(reference)
-    threshold = float(threshold)
-
-    def h_fn(q):
-        return -robot.frame_position_in(model, q, frame, reference)[2] - threshold
-
-    return Barrier(name=f"{side}-fist-height", h_fn=h_fn, relative_degree=2)
-
-
-class AECBFRows(NamedTuple):
-    """Stacked A-ECBF rows ``A @ q_ddot >= b`` of several barriers; ``eta`` is padded with
-    zeros to the largest relative degree."""
-
-    A: jax.Array    # (nb, nv)
-    b: jax.Array    # (nb,)
-    eta: jax.Array  # (nb, r_max)
-
-
-def _barrier_poles(poles, j: int, r: int, nb: int):
-    if isinstance(poles, (list, tuple)):
-        if len(poles) != nb:
-            raise ValueError(f"{len(poles)} pole sets for {nb} barriers")
-        p = jnp.asarray(poles[j])
-    else:
-        p = jnp.asarray(poles)
-        if p.ndim != 2 or p.shape[0] != nb:
-            raise ValueError(f"poles must be (n_barriers, r_max) = ({nb}, r_max), got {p.shape}")
-        p = p[j]
-    if p.shape[-1] < r:
-        raise ValueError(f"barrier {j}: {p.shape[-1]} poles for relative degree {r}")
-    return p[:r]
-
-
-def barrier_rows(barriers: Sequence[Barrier], q, v, poles) -> AECBFRows:
-    """Rows of eq. (AECBF) for several barriers, stacked: A (nb, nv), b (nb,).
-
-    ``poles`` is an array (nb, r_max) (barrier j uses its first r_j entries, the rest is
-    padding) or a list of per-barrier pole arrays. Jit/vmap over q, v, poles; the list of
-    barriers is static."""
-    barriers = tuple(barriers)
-    nb, nv = len(barriers), v.shape[-1]
-    if nb == 0:
-        return AECBFRows(jnp.zeros((0, nv), v.dtype), jnp.zeros((0,), v.dtype),
-                         jnp.zeros((0, 0), v.dtype))
-    r_max = max(bar.relative_degree for bar in barriers)
-    rows = [bar.row(q, v, _barrier_poles(poles, j, bar.relative_degree, nb))
-            for j, bar in enumerate(barriers)]
-    eta = jnp.stack([jnp.pad(row.eta, (0, r_max - row.eta.shape[0])) for row in rows])
-    return AECBFRows(A=jnp.stack([row.a_row for row in rows]),
-                     b=jnp.stack([row.b for row in rows]), eta=eta)
-
-
-_eta_jit = jax.jit(lambda bar, q, v: bar.eta(q, v))
-
-
-def check_barrier_poles(barriers: Sequence[Barrier], q0, v0, poles):
-    """:func:`check_poles` for each barrier at the start state (q0, v0); poles as in
-    :func:`barrier_rows`. Returns the list of bounds; raises :class:`PoleError`."""
-    barriers = tuple(barriers)
-    out = []
-    for j, bar in enumerate(barriers):
-        p = np.asarray(_barrier_poles(poles, j, bar.relative_degree, len(barriers)))
-        eta0 = np.asarray(_eta_jit(bar, jnp.asarray(q0), jnp.asarray(v0)))
-        out.append(check_poles(bar.name, eta0, p))
-    return out
-
-
-def as_qp_inequalities(A, b, n_decision: int):
-    """The rows A q_ddot >= b as G X <= h over X = [q_ddot, u, lambda] (the QP seam's
-    convention): G = [-A, 0], h = -b, with n_decision columns in all."""
-    A = jnp.asarray(A)
-    pad = n_decision - A.shape[-1]
-    if pad < 0:
-        raise ValueError(f"n_decision = {n_decision} is smaller than nv = {A.shape[-1]}")
-    g = jnp.concatenate([-A, jnp.zeros(A.shape[:-1] + (pad,), A.dtype)], axis=-1)
-    return g, -jnp.asarray(b)
-
-
 __all__ = [
     "PoleError", "k_alpha_from_poles", "integrator_chain", "closed_loop_matrix",
     "comparison_bound", "b_functions", "b_function_rates", "admissible_pole_bounds",
-    "check_poles", "AECBFRow", "aecbf_inequality", "aecbf_row_from_terms",
-    "barrier_lie_derivatives", "aecbf_row", "Barrier", "fist_height_barrier", "AECBFRows",
-    "barrier_rows", "check_barrier_poles", "as_qp_inequalities",
+    "check_poles", "AECBFRow", "aecbf_inequality", "barrier_lie_derivatives", "aecbf_row",
 ]

@@ -14,7 +14,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import spatial
 from safewbc_jax.robot import RobotModel, forward_kinematics, point_jacobians
 
 
@@ -92,6 +91,3 @@ def chain_jacobian(model: RobotModel, q, kin=None):
     return jnp.stack(rows)
 
 
-def chain_drift(model: RobotModel, q, v):
-    """J_chain_dot(q, v) v."""
-    return spatial.derivative_along(lambda qq: chain_jacobian(model, qq) @ v, q, v)

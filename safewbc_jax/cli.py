@@ -28,7 +28,7 @@ def _cmd_run(args) -> int:
     m = run_scenario(args.scenario, duration=args.duration, out=args.out,
                      barrier=not args.no_barrier, params_file=args.params, video=args.video,
                      settle=args.settle, speed=args.speed, push=push, push_at=args.at,
-                     push_for=args.push_for, quiet=args.quiet)
+                     push_for=args.push_for, quiet=args.quiet, safe_sets=tuple(args.safe_set))
     print(format_summary(m))
     print(f"wrote {args.out or 'runs/' + args.scenario + ('' if not args.no_barrier else '_no_barrier')}"
           "/metrics.json, log.npz and figures")
@@ -185,6 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output folder (default runs/SCENARIO)")
     p.add_argument("--no-barrier", action="store_true", help="drop the A-ECBF rows")
     p.add_argument("--params", default=None, help="TOML of ControllerParams overrides")
+    p.add_argument("--safe-set", dest="safe_set", action="append", default=[],
+                   metavar="FILE.py:NAME", help="add the SafeSet NAME of a Python file "
+                   "(repeatable; e.g. examples/bow_torso_lean.py:TORSO_LEAN)")
     p.add_argument("--video", default=None, help="write an MP4 (offscreen rendering)")
     p.add_argument("--cpu", type=int, default=None, metavar="N",
                    help="pin the run to CPU core N (default: the last core; -1: no pinning). "
@@ -258,6 +261,9 @@ def pin_to_cpu(cpu: int | None) -> int | None:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(_join_dash_values(argv))
+    import safewbc_jax
+
+    safewbc_jax.enable_x64()
     try:
         if args.command == "run":
             pin_to_cpu(args.cpu)

@@ -98,21 +98,9 @@ def contact_jacobian(model: RobotModel, q, frame: str):
     return _contact_jacobians(model, q, (frame,))[0]
 
 
-def contact_drift(model: RobotModel, q, v, frame: str):
-    """J_cont_dot v of eq. (3): d/dt (J_cont(q) v) along q(t) = integrate(q, v t). It
-    includes the rotation of the contact frame itself, so it is not R^T times
-    robot.frame_drift unless the sole is at rest (J_cont v = 0)."""
-    return spatial.derivative_along(lambda qq: contact_jacobian(model, qq, frame) @ v, q, v)
-
-
 def stacked_contact_jacobian(model: RobotModel, q, kin=None):
     """[J_cont^left; J_cont^right] (12 x nv), rows in the order of the stacked lambda."""
     return _contact_jacobians(model, q, FEET, kin).reshape(12, -1)
-
-
-def stacked_contact_drift(model: RobotModel, q, v):
-    """[J_cont_dot^left v; J_cont_dot^right v] (12), eq. (3)'s drift for both feet."""
-    return spatial.derivative_along(lambda qq: stacked_contact_jacobian(model, qq) @ v, q, v)
 
 
 # --------------------------------------------------------------------------------------

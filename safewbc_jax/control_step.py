@@ -15,7 +15,7 @@ between them on the host and ``conclude`` after the command is out. Nothing in e
 * the measurement check (``state_ok``): a refused measurement holds the last good torque,
   does not advance the gait or the clock, and is counted (``bad_measurements``);
 * the clock: tau = (t - t_first) - settle, from the first good measurement;
-* walking: the gait (``walking.gait_step``) advanced over the control periods since the last
+* walking: the gait (``scenario.gait``, ``walking.AlipGait``) advanced over the control periods since the last
   good step, from the soles' normal forces of the measurement and the soles' positions by
   the controller's forward kinematics of q; the domain; the swing leg's rates with rigid
   springs (``walking.rigid_spring_velocity``);
@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import barriers, contacts, controller, metrics, robot, scenarios, walking
+from safewbc_jax import barriers, contacts, controller, metrics, robot, walking
+from safewbc_jax import scenario as scenario_mod
 
 FALL_HEIGHT = 0.55  # m: base below this counts as a fall
 # Measurement bounds. |quat| is 1 to ~1e-15 from any estimator that normalises; 1e-3 is far
@@ -121,7 +122,7 @@ class Context:
 
     @property
     def walking(self) -> bool:
-        return self.scenario.desired_fn is not None
+        return self.scenario.gait is not None
 
     def __post_init__(self):
         # evaluated here, eagerly: under a jit trace jnp operations on the model's constants
@@ -158,14 +159,14 @@ class RunValues(NamedTuple):
 
 
 def start_data(model, scenario, q) -> dict:
-    """The references' start data, measured at the start pose q (``scenarios.start_state``,
-    the outputs' start values; walking: ``walking.walking_start``). The settle time is the
+    """The references' start data, measured at the start pose q (``scenario.start_state``,
+    the outputs' start values; a gait's own, ``gait.start_data``). The settle time is the
     run's (``RunValues``), added by ``prepare``."""
     q = jnp.asarray(q)
-    start = scenarios.start_state(model, q)
+    start = scenario_mod.start_state(model, q)
     start["y0"] = controller.output_start_values(model, scenario, q)
-    if scenario.desired_fn is not None:
-        start.update(walking.walking_start(model, q, start, scenario.blend))
+    if scenario.gait is not None:
+        start.update(scenario.gait.start_data(model, q, start, scenario.blend))
     return start
 
 
@@ -244,19 +245,14 @@ def prepare(ctx: Context, params, start, run: RunValues, state: ControllerState,
     t = jnp.where(ok, t, state.prev_t)
     tau = (t - t0) - run.settle
     gait, domain = state.gait, None
-    if ctx.walking:
+    if sc.gait is not None:
         dt = ctx.control_dt
         periods = jnp.maximum(1.0, jnp.round((t - state.prev_t) / dt))
-        swing = jnp.where(gait.stance > 0, force[1], force[0])
-        sole_l = robot.frame_pose(model, q, "left-sole")[0]
-        sole_r = robot.frame_pose(model, q, "right-sole")[0]
-        new, _ = walking.gait_step(gait, state.prev_tau, periods * dt, sole_l, sole_r, swing,
-                                   ctx.weight, xp=jnp)
+        new = sc.gait.advance(gait, state.prev_tau, periods * dt, model, q, force, ctx.weight)
         advance = ok & started
         gait = jax.tree_util.tree_map(lambda a, b: jnp.where(advance, a, b), new, gait)
-        domain = walking.gait_domain(gait, jnp.zeros((), dtype), run.speed,
-                                     jnp.asarray(walking.STEP_WIDTH, dtype), xp=jnp)
-        v = walking.rigid_spring_velocity(model, q, v, domain["stance"])
+        domain = sc.gait.domain(gait, run.speed)
+        v = sc.gait.controller_velocity(model, q, v, domain)
         start = {**start, "settle": run.settle}
     terms = controller.robot_terms(model, sc, q, v, domain)
     qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, start,
@@ -319,7 +315,7 @@ def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: So
     margin = contacts.zmp_margin(model, prep.q, jnp.where(usable, lam, 0.0),
                                  jnp.asarray(in_contact, prep.q.dtype))
     margin = jnp.where(usable, margin, jnp.nan)
-    mask = sc.weight_mask(domain) if domain is not None and sc.weight_mask is not None else {}
+    mask = sc.masks(domain)
     y = {n: ya for n, (ya, _) in prep.aux["outputs"].items()}
     yd = {n: jnp.where(mask[n] > 0, yd_, jnp.nan) if n in mask else yd_
           for n, (_, yd_) in prep.aux["outputs"].items()}
@@ -351,13 +347,13 @@ def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState
 
 # ----------------------------------------------------------------------------- Theorem 1
 
-def start_eta_fn(model, barrier, q):
-    """(v, threshold) -> eta(x_0) (r,) of ``barrier`` at the start state (q, v): the values
-    Theorem 1 is checked on. A barrier active only in some domains (the swing-foot
-    barrier) is evaluated where it first becomes active, at the start of the first step
-    from q (``walking.first_step_domain``). Pure JAX in (v, threshold): the batched path
-    vmaps it over the rollouts' start velocities."""
-    domain = None if barrier.active is None else walking.first_step_domain(model, q)
+def start_eta_fn(model, scenario, barrier, q):
+    """(v, threshold) -> eta(x_0) (r,) of ``barrier`` (a SafeSet of ``scenario``) at the
+    start state (q, v): the values Theorem 1 (eq. 25) is checked on, in the domain
+    ``Scenario.theorem_domain`` gives (a barrier active only in some domains, like the
+    swing-foot barrier, where it first becomes active). Pure JAX in (v, threshold): the
+    batched path vmaps it over the rollouts' start velocities."""
+    domain = scenario.theorem_domain(model, barrier, q)
 
     def eta(v, threshold):
         return barriers.barrier_lie_derivatives(barrier.h_fn(model, threshold, domain), q, v,

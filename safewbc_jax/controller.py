@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import barriers, chains, contacts, qp, robot, spatial
+from safewbc_jax import barriers, chains, contacts, qp, robot
 from safewbc_jax.params import ControllerParams
 
 
@@ -81,20 +81,6 @@ def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
                  constraint_drift(model, kin, motion), outs, kin)
 
 
-def robot_terms_ad(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
-    """``robot_terms`` with every drift term by one forward-mode tangent of the kinematics
-    and Jacobians along q_dot (the reference the closed form is tested against)."""
-    def jacobians(qq):
-        kin = robot.forward_kinematics(model, qq)
-        return robot.com_jacobians(model, kin), constraint_jacobian(model, qq, kin), kin
-
-    (bodies, J, kin), (dbodies, dJ, _) = jax.jvp(jacobians, (q,), (spatial.config_rate(q, v),))
-    dyn = robot.dynamics_from_jacobians(model, bodies, dbodies, v)
-    dyn["domain"] = domain
-    outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
-    return Terms(dyn["M"], dyn["h"], J, dJ @ v, outs, kin)
-
-
 def n_chain_rows(model) -> int:
     return len(model.rod_names) + len(model.spring_dofs)
 
@@ -109,7 +95,7 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
     if domain is not None:
         in_contact = domain["in_contact"]
     desired = scenario.desired_at(model, tau, start, q, v, domain)
-    mask = scenario.weight_mask(domain) if scenario.weight_mask is not None else {}
+    mask = scenario.masks(domain)
     jac, drift, ystar, w, err = [], [], [], [], {}
     for o in scenario.outputs:
         ya, jy, jdv = terms.outputs[o.name]
@@ -141,8 +127,7 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
         bs.append(jnp.where(on > 0, r.b, -1e9))
         hvals[b.name] = r.eta[0]
     for b in scenario.monitors:
-        hf = b.h_fn(model, params.threshold[b.name], domain)
-        hvals[b.name] = hf(q) if b.relative_degree == 2 else hf(q, v)
+        hvals[b.name] = b.value(model, q, v, params.threshold[b.name], domain)
     brow = jnp.stack(rows) if rows else jnp.zeros((0, model.nv), q.dtype)
     bb = jnp.stack(bs) if bs else jnp.zeros((0,), q.dtype)
 
@@ -155,10 +140,10 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
     gamma = jnp.concatenate([jnp.full(model.nv, params.gamma_qdd), jnp.full(nu, params.gamma_u),
                              gamma_lam])
     _, u_max = contacts.torque_limit_bounds(model)
-    if scenario.passive_actuators is not None:
+    if scenario.gait is not None:
         # A passive joint (the stance ankle of the ALIP gait) is one whose motors give no
         # torque: its bounds become 0 <= u <= 0.
-        u_max = u_max * (1.0 - scenario.passive_actuators(model, domain))
+        u_max = u_max * (1.0 - scenario.gait.passive_actuators(model, domain))
     # Holonomic rows J q_ddot = -J_dot v - kd J v: kd = 0 is eq. (2)-(3) as written.
     jdot_v = terms.Jdot_v + params.kd_constraint * (terms.J @ v)
     qpm = qp.assemble(M=terms.M, h=terms.h, B=model.B, J=terms.J, Jdot_v=jdot_v,

@@ -153,7 +153,7 @@ def check_barrier_poles(model, scenario, params, q, v):
     naming the barrier, the pole and its bound (``control_step.check_start_poles``; a
     walking barrier is checked where its domain first starts)."""
     for b in scenario.barriers:
-        eta = control_step.start_eta_fn(model, b, q)(v, params.threshold[b.name])
+        eta = control_step.start_eta_fn(model, scenario, b, q)(v, params.threshold[b.name])
         control_step.check_start_poles(b.name, np.asarray(eta)[None],
                                        np.asarray(params.poles[b.name])[None], batched=False)
 
@@ -205,7 +205,7 @@ class Controller:
 
         sc = scenarios.get_scenario(scenario, barrier) if isinstance(scenario, str) else scenario
         n_steps, settle, _ = control_step.schedule(sc, duration, settle, control_dt)
-        self.walking = sc.desired_fn is not None
+        self.walking = sc.gait is not None
         if self.walking:
             from safewbc_jax.walking import check_speed
 

@@ -134,8 +134,14 @@ def from_mujoco(m, dtype=jnp.float64, spring_suffixes=SPRING_SUFFIXES) -> RobotM
     """Build the JAX model from a compiled MuJoCo model of a floating-base hinge tree.
 
     Rods are found as site pairs ``<rod>-anchor`` / ``<rod>-ball``; spring joints by the
-    name suffixes ``spring_suffixes``."""
+    name suffixes ``spring_suffixes``. A float64 model needs JAX's 64-bit floats
+    (``safewbc_jax.enable_x64``)."""
     import mujoco
+
+    if jnp.dtype(dtype) == jnp.float64:
+        from safewbc_jax import require_x64
+
+        require_x64("the controller model (robot.from_mujoco)")
 
     nb = m.nbody - 1
     jtype, qadr, dadr, jnames = [], [], [], []
@@ -427,23 +433,6 @@ def bias_forces(model: RobotModel, q, v):
     return dynamics_and_com(model, q, v)["h"]
 
 
-def bias_forces_ad(model: RobotModel, q, v):
-    """``bias_forces`` with the body accelerations by forward-mode AD of the Jacobians (the
-    reference the closed-form ``body_motion`` is checked against)."""
-    def jv(qq):
-        jp, jr, _ = _com_jacobians(model, qq)
-        return jp @ v, jr @ v
-
-    jp, jr, irot = _com_jacobians(model, q)
-    omega = jr @ v
-    acc, alpha = spatial.derivative_along(jv, q, v)
-    iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
-    force = model.body_mass[:, None] * (acc - model.gravity[None])
-    iw = jnp.einsum("bij,bj->bi", iworld, omega)
-    torque = jnp.einsum("bij,bj->bi", iworld, alpha) + jnp.cross(omega, iw)
-    return jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
-
-
 def com_jacobians(model: RobotModel, kin):
     """Per body, from forward kinematics ``kin`` = (xpos, xrot): linear and angular
     Jacobians of its centre of mass [nb, 3, nv], principal-axis rotation, CoM position."""
@@ -461,14 +450,6 @@ def dynamics_from_motion(model: RobotModel, bodies, motion: BodyMotion):
     every = np.arange(nb)
     acc = motion.point_bias(every, com)
     return _dynamics(model, jp, jr, irot, com, acc, motion.alpha, motion.omega)
-
-
-def dynamics_from_jacobians(model: RobotModel, bodies, dbodies, v):
-    """M, h and the CoM terms from the body Jacobians ``bodies`` = com_jacobians(...) and
-    their tangent ``dbodies`` along q_dot (forward-mode AD)."""
-    jp, jr, irot, com = bodies
-    djp, djr = dbodies[0], dbodies[1]
-    return _dynamics(model, jp, jr, irot, com, djp @ v, djr @ v, jr @ v)
 
 
 def _dynamics(model, jp, jr, irot, com, acc, alpha, omega):

@@ -108,12 +108,14 @@ def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=
 
 def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_file=None,
                  video=None, settle=None, control_dt=1e-3, quiet=False,
-                 record_qps_every=0, speed=None, push=None, push_at=None, push_for=None) -> dict:
+                 record_qps_every=0, speed=None, push=None, push_at=None, push_for=None,
+                 safe_sets=()) -> dict:
     """Validate everything, run, write metrics.json, log.npz and figures; return metrics.
-    Options left None take the scenario's defaults (``check_run_options``)."""
+    Options left None take the scenario's defaults (``check_run_options``). ``safe_sets``:
+    the user's safe sets to add, "FILE.py:NAME" references (``safesets.load``) or SafeSets."""
     from safewbc_jax.sim.mujoco_loop import RunConfig, run
 
-    scenario = scenarios.get_scenario(name, barrier)
+    scenario = scenarios.get_scenario(name, barrier, tuple(safe_sets))
     opts = check_run_options(name, scenario, duration=duration, settle=settle, speed=speed,
                              push=push, push_at=push_at, push_for=push_for)
     duration, settle, speed = opts["duration"], opts["settle"], opts["speed"]
@@ -144,6 +146,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     if push is not None:
         metrics["push"] = {"force_N": [float(f) for f in push], "at_s": push_at,
                            "for_s": push_for}
+    metrics["safe_sets"] = [s if isinstance(s, str) else s.name for s in safe_sets]
     metrics["threshold"] = {k: float(v) for k, v in params.threshold.items()}
     metrics["poles"] = {k: np.asarray(v).tolist() for k, v in params.poles.items()}
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))

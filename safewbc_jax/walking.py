@@ -47,8 +47,10 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax import alip, chains, outputs, references, robot, scenarios
-from safewbc_jax.params import make_params
+from safewbc_jax import alip, chains, outputs, references, robot
+from safewbc_jax.safesets import SafeSet
+from safewbc_jax.scenario import Scenario
+from safewbc_jax.tasks import Task
 from safewbc_jax.solvers import lapack_batched as lb
 
 H_WALK = 0.9            # CoM height (m), paper
@@ -201,15 +203,10 @@ def _single_support(domain):
 
 
 def swing_barrier():
-    return scenarios.SafeSet("swing_foot", lambda m, q, c, d: swing_clearance_h(m, q, c, d), 2,
-                             active=_single_support)
-
-
-def weight_mask(domain):
-    """Outputs by domain: CoM x, y only standing; swing outputs only in single support."""
-    ss = _single_support(domain)
-    return {"com": jnp.stack([1.0 - ss, 1.0 - ss, jnp.ones_like(ss)]),
-            "swing_pos": ss * jnp.ones(3), "swing_rot": ss * jnp.ones(3)}
+    """The collision-avoidance safe set (``swing_clearance_h``), active in single support
+    and checked (Theorem 1) where the first step begins."""
+    return SafeSet("swing_foot", swing_clearance_h, 2, SWING_POLES, SWING_MARGIN,
+                   active=_single_support, check_domain=first_step_domain)
 
 
 def passive_actuators(model, domain):
@@ -254,14 +251,13 @@ DIAG_NAMES = ("p_x", "p_y", "L_x", "L_y", "z", "u_x", "u_y", "p_end_x", "p_end_y
               "L_end_y", "Lcom_x", "Lcom_y", "v_x", "v_y", "v_z")
 
 
-def desired(model, tau, start, q, v, domain):
-    """References of one control step: standing (tau < 0) blends the CoM to
-    [stance origin, H]; walking plans the foot placement from the measured ALIP state and
-    sends the swing foot there (``alip.swing_foot_reference``, see the module docstring)."""
-    heading = domain["heading"]
-    out = {}
+# The walking tasks' references, planned at each control step (``tasks.Task.planned``):
+# standing (tau < 0) blends the CoM to [stance origin, H]; walking plans the foot placement
+# from the measured ALIP state and sends the swing foot there (``alip.swing_foot_reference``,
+# see the module docstring).
 
-    # Standing: CoM over the inside of the first stance foot at the walking height.
+def _com_reference(model, tau, start, q, v, domain):
+    """Standing: the CoM over the inside of the first stance foot at the walking height."""
     def com_ref(s):
         target = jnp.concatenate([start["origin"][:2] + jnp.array([0.0, start["half_width"]
                                                                    - START_SHIFT]),
@@ -269,13 +265,22 @@ def desired(model, tau, start, q, v, domain):
         y0 = start["y0"]["com"]
         return y0 + (target - y0) * references.smoothstep5((s + start["settle"]) / start["blend"])
 
-    out["com"] = references.with_derivatives(com_ref, jnp.minimum(tau, 0.0))
-    zero3 = jnp.zeros(3)
-    out["torso"] = (jnp.array([0.0, 0.0, 1.0]) * heading, zero3, zero3)
-    out["arms"] = (start["arm0"], jnp.zeros(8), jnp.zeros(8))
-    out["swing_rot"] = (jnp.array([0.0, 0.0, 1.0]) * heading, zero3, zero3)
+    return references.with_derivatives(com_ref, jnp.minimum(tau, 0.0))
 
-    # Walking: ALIP plan about the stance sole.
+
+def _heading_reference(model, tau, start, q, v, domain):
+    """Level, facing the heading (the torso; the swing sole kept flat)."""
+    zero3 = jnp.zeros(3)
+    return jnp.array([0.0, 0.0, 1.0]) * domain["heading"], zero3, zero3
+
+
+def _arms_reference(model, tau, start, q, v, domain):
+    return start["arm0"], jnp.zeros(8), jnp.zeros(8)
+
+
+def _swing_reference(model, tau, start, q, v, domain):
+    """The swing sole towards the ALIP foot placement planned from (q, v)."""
+    heading = domain["heading"]
     _, _, u = plan_step(model, q, v, domain)
     p_sw0 = alip.world_to_heading((domain["swing0"] - domain["stance0"])[:2], heading)
     sw = alip.swing_foot_reference(domain["tau_step"], STEP_T, p_sw0, u, z0=0.0,
@@ -285,32 +290,35 @@ def desired(model, tau, start, q, v, domain):
     pos = jnp.concatenate([base[:2] + rot(sw.pos[:2]), base[2:3] + sw.pos[2:3]])
     vel = jnp.concatenate([rot(sw.vel[:2]), sw.vel[2:3]])
     acc = jnp.concatenate([rot(sw.acc[:2]), sw.acc[2:3]])
-    out["swing_pos"] = (pos, vel, acc)
-    out["plan_u"] = u
-    return out
+    return pos, vel, acc
 
 
-def default_params():
-    return make_params(
-        {"com": (3, 100.0, 20.0, 100.0), "torso": (3, 100.0, 20.0, 20.0),
-         "arms": (8, 900.0, 60.0, 1.0), "swing_pos": (3, 900.0, 60.0, 100.0),
-         "swing_rot": (3, 400.0, 40.0, 10.0)},
-        {"swing_foot": (SWING_POLES, SWING_MARGIN)})
+def _com_mask(domain):
+    """CoM x, y tracked only standing (walking leaves them to the ALIP)."""
+    ss = _single_support(domain)
+    return jnp.stack([1.0 - ss, 1.0 - ss, jnp.ones_like(ss)])
 
 
-def walk_outputs():
-    return (outputs.CoMPosition(), outputs.TorsoOrientation(),
-            outputs.JointPositions(name="arms", joints=outputs.ARM_JOINTS),
-            SwingFootPosition(), SwingFootOrientation())
+def _swing_mask(domain):
+    return _single_support(domain) * jnp.ones(3)
 
 
-def make_scenario(name, duration, barrier):
-    bars = (swing_barrier(),) if barrier else ()
-    mons = () if barrier else (swing_barrier(),)
-    return scenarios.Scenario(
-        name, walk_outputs(), bars, mons, reference=None, default_params=default_params,
-        duration=duration, settle=1.5, blend=1.0, desired_fn=desired,
-        weight_mask=weight_mask, passive_actuators=passive_actuators)
+def walk_tasks():
+    return (Task(outputs.CoMPosition(), 100.0, 20.0, 100.0, planned=_com_reference,
+                 mask=_com_mask),
+            Task(outputs.TorsoOrientation(), 100.0, 20.0, 20.0, planned=_heading_reference),
+            Task(outputs.JointPositions(name="arms", joints=outputs.ARM_JOINTS), 900.0, 60.0,
+                 1.0, planned=_arms_reference),
+            Task(SwingFootPosition(), 900.0, 60.0, 100.0, planned=_swing_reference,
+                 mask=_swing_mask),
+            Task(SwingFootOrientation(), 400.0, 40.0, 10.0, planned=_heading_reference,
+                 mask=_swing_mask))
+
+
+def make_scenario(name, duration):
+    """The walking scenario (``push`` is the same with the paper's push, ``runner``)."""
+    return Scenario(name, walk_tasks(), (swing_barrier(),), duration=duration, settle=1.5,
+                    blend=1.0, gait=AlipGait())
 
 
 # --------------------------------------------------------------------------------------
@@ -434,3 +442,40 @@ class Gait:
         self.stance0, self.swing0 = np.asarray(g.stance0), np.asarray(g.swing0)
         self.steps, self.missed_touchdowns = int(g.steps), int(g.missed)
         return bool(begin)
+
+
+@dataclasses.dataclass(frozen=True)
+class AlipGait:
+    """The walking scenarios' gait (``scenario.Scenario.gait``): what
+    ``control_step.prepare`` asks of a domain-driven scenario, in JAX."""
+
+    step_width: float = STEP_WIDTH
+
+    def start_data(self, model, q, start, blend) -> dict:
+        return walking_start(model, q, start, blend)
+
+    def advance(self, gait: GaitState, prev_tau, dt, model, q, sole_force, weight):
+        """``gait_step`` from the measurement: the soles by forward kinematics of q, the
+        swinging sole's normal force."""
+        swing = jnp.where(gait.stance > 0, sole_force[1], sole_force[0])
+        sole_l = robot.frame_pose(model, q, "left-sole")[0]
+        sole_r = robot.frame_pose(model, q, "right-sole")[0]
+        return gait_step(gait, prev_tau, dt, sole_l, sole_r, swing, weight, xp=jnp)[0]
+
+    def domain(self, gait: GaitState, speed):
+        dtype = gait.tau_step.dtype
+        return gait_domain(gait, jnp.zeros((), dtype), speed, jnp.asarray(self.step_width, dtype),
+                           xp=jnp)
+
+    def controller_velocity(self, model, q, v, domain):
+        """The rates the controller sees: the swing leg's springs held rigid."""
+        return rigid_spring_velocity(model, q, v, domain["stance"])
+
+    def passive_actuators(self, model, domain):
+        return passive_actuators(model, domain)
+
+    def first_domain(self, model, q):
+        return first_step_domain(model, q)
+
+    def check_speed(self, speed, option="speed"):
+        return check_speed(speed, option)

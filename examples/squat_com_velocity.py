@@ -1,0 +1,46 @@
+"""The squat with a limit on the CoM's horizontal speed: a barrier of relative degree 1,
+the paper's "excessive (centroidal) momentum" kind of safe set, as a user's file.
+
+    h(q, v) = (v_max^2 - |v_CoM,xy(q, v)|^2) / (2 v_max) >= 0
+
+v_CoM,xy = J_CoM,xy(q) v is the CoM's horizontal velocity. The square keeps h smooth where
+|v| = 0 (|v| is not differentiable there); near the boundary h ~ v_max - |v_xy|. h depends on
+v, so it has relative degree 1 in q_ddot: eta = [h], and the A-ECBF row (eq. 28 with r_b = 1)
+is dh/dv q_ddot >= -p_1 h - L_F h, with L_F h the rate of h along q_dot at q_ddot = 0. One
+pole; Theorem 1 (eq. 25) needs h(x0) >= 0, i.e. a start slower than v_max.
+
+The squat's reference keeps the CoM 2 cm behind the stance origin; the robot gets there in
+the settle blend, and the squat's knee bend moves the CoM fore and aft a little. v_max =
+0.02 m/s is below the speed the unconstrained squat reaches, so the barrier has work to do.
+
+    safewbc run squat --safe-set examples/squat_com_velocity.py:COM_SPEED
+"""
+
+import jax.numpy as jnp
+
+from safewbc_jax import robot, spatial
+from safewbc_jax.safesets import SafeSet
+
+
+def com_velocity_xy(model, q, v):
+    """J_CoM,xy(q) v: the CoM's horizontal velocity (m/s), by the derivative of p_CoM along
+    q_dot on the configuration manifold."""
+    return spatial.derivative_along(lambda qq: robot.com_position(model, qq)[:2], q, v)
+
+
+def com_speed(model, q, v, threshold, domain=None):
+    """h(q, v) = (v_max^2 - |v_xy|^2) / (2 v_max); threshold is v_max (m/s)."""
+    vxy = com_velocity_xy(model, q, v)
+    return (threshold * threshold - jnp.sum(vxy * vxy)) / (2.0 * threshold)
+
+
+COM_SPEED = SafeSet("com_speed", com_speed, relative_degree=1, poles=(20.0,), threshold=0.02)
+
+
+if __name__ == "__main__":
+    import safewbc_jax
+    from safewbc_jax.runner import format_summary, run_scenario
+
+    safewbc_jax.enable_x64()
+    m = run_scenario("squat", safe_sets=(COM_SPEED,), out="runs/squat_com_speed")
+    print(format_summary(m))

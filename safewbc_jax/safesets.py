@@ -1,0 +1,144 @@
+"""A safe set C = {x : h(x) >= 0} as one object, and user safe sets loaded from a file.
+
+Paper, "Exponential control barrier functions": a barrier h of relative degree r_b (eq. 18)
+is enforced through the A-ECBF row L_F^r h + L_G L_F^(r-1) h q_ddot >= -K_alpha eta
+(eqs. 26, 28; ``barriers.aecbf_row``), K_alpha placing the roots of the closed-loop chain at
+-p_1, ..., -p_r; Theorem 1 says which poles keep h >= 0 from a given start state.
+
+A ``SafeSet`` carries everything a scenario needs of one barrier:
+
+* ``h``: ``h(model, q, threshold, domain)`` (relative degree 2, a function of the
+  configuration) or ``h(model, q, v, threshold, domain)`` (relative degree 1, of the
+  state); ``threshold`` is a parameter (``ControllerParams.threshold[name]``) so that it
+  can be swept, ``domain`` is the gait's domain dict in walking scenarios (None else);
+* its default ``poles`` (p_1..p_r > 0) and ``threshold``;
+* ``active(domain) -> 0/1``: where the row is enforced (None: always);
+* ``check_domain(model, q) -> domain``: where Theorem 1 is checked for a barrier that is
+  not active at the start state (the swing-foot barrier: at the start of the first step);
+  None: at the start state itself;
+* ``enforce``: False evaluates h for the metrics and plots only (a monitor).
+
+A user adds one from their own file: ``load("path/to/file.py:NAME")`` imports the file and
+returns its ``NAME`` (a SafeSet, or a function of no arguments that returns one); the
+CLI's ``--safe-set`` and a sweep spec's ``sweep.safe_sets`` go through it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.util
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Callable
+
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class SafeSetError(ValueError):
+    """A safe set (or a reference FILE.py:NAME to one) that cannot be used; the message
+    names the safe set or the file and what is wrong."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SafeSet:
+    name: str
+    h: Callable
+    relative_degree: int = 2
+    poles: tuple = (10.0, 10.0)
+    threshold: float = 0.0
+    active: Callable | None = None
+    check_domain: Callable | None = None
+    enforce: bool = True
+
+    def __post_init__(self):
+        where = f"safe set {self.name!r}"
+        if not isinstance(self.name, str) or not _NAME_RE.match(self.name):
+            raise SafeSetError(f"{where}: the name must be an identifier (letters, digits, _): "
+                               "it is a key of [poles] and [threshold] in params files")
+        if not callable(self.h):
+            raise SafeSetError(f"{where}: h must be a function")
+        if self.relative_degree not in (1, 2):
+            raise SafeSetError(f"{where}: relative_degree must be 1 (h(model, q, v, threshold, "
+                               f"domain)) or 2 (h(model, q, threshold, domain)), got "
+                               f"{self.relative_degree!r}")
+        poles = tuple(self.poles) if isinstance(self.poles, (tuple, list)) else (self.poles,)
+        if len(poles) != self.relative_degree:
+            raise SafeSetError(f"{where}: {len(poles)} poles for relative degree "
+                               f"{self.relative_degree} (one pole per derivative)")
+        if not all(isinstance(p, (int, float)) and math.isfinite(p) and p > 0 for p in poles):
+            raise SafeSetError(f"{where}: poles {poles!r} must be finite numbers > 0 "
+                               "(Theorem 1)")
+        if not (isinstance(self.threshold, (int, float)) and math.isfinite(self.threshold)):
+            raise SafeSetError(f"{where}: threshold {self.threshold!r} must be a finite number")
+        object.__setattr__(self, "poles", tuple(float(p) for p in poles))
+        object.__setattr__(self, "threshold", float(self.threshold))
+
+    def h_fn(self, model, threshold, domain=None):
+        """The barrier as ``barriers`` takes it: h_fn(q) (degree 2) or h_fn(q, v) (1)."""
+        if self.relative_degree == 2:
+            return lambda q: self.h(model, q, threshold, domain)
+        return lambda q, v: self.h(model, q, v, threshold, domain)
+
+    def value(self, model, q, v, threshold, domain=None):
+        """h at (q, v)."""
+        hf = self.h_fn(model, threshold, domain)
+        return hf(q) if self.relative_degree == 2 else hf(q, v)
+
+    def is_active(self, domain):
+        return 1.0 if self.active is None else self.active(domain)
+
+    def monitored(self) -> "SafeSet":
+        """This safe set evaluated only (no QP row)."""
+        return dataclasses.replace(self, enforce=False)
+
+
+def split_ref(ref: str) -> tuple[Path, str]:
+    """"FILE.py:NAME" -> (Path, NAME), or SafeSetError."""
+    if not isinstance(ref, str) or ":" not in ref:
+        raise SafeSetError(f"safe set {ref!r}: expected FILE.py:NAME (a Python file and the "
+                           "name of a SafeSet in it)")
+    path, name = ref.rsplit(":", 1)
+    if not path.endswith(".py") or not _NAME_RE.match(name):
+        raise SafeSetError(f"safe set {ref!r}: expected FILE.py:NAME (a Python file and the "
+                           "name of a SafeSet in it)")
+    return Path(path), name
+
+
+def file_digest(ref: str) -> str:
+    """sha256 of the file a reference names (sweeps record it: a resumed table must come
+    from the same barrier)."""
+    path, _ = split_ref(ref)
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def load(ref: str) -> SafeSet:
+    """The SafeSet ``NAME`` of the Python file ``FILE.py`` (``ref`` = "FILE.py:NAME");
+    ``NAME`` may also be a function of no arguments returning one. Raises SafeSetError
+    naming the file and what is missing."""
+    path, name = split_ref(ref)
+    if not path.is_file():
+        raise SafeSetError(f"safe set {ref!r}: file {path} does not exist")
+    key = "safewbc_user_" + hashlib.sha256(str(path.resolve()).encode()).hexdigest()[:16]
+    spec = importlib.util.spec_from_file_location(key, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[key] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as e:  # noqa: BLE001 - the user's file: report, do not crash later
+        sys.modules.pop(key, None)
+        raise SafeSetError(f"safe set {ref!r}: importing {path} failed: "
+                           f"{type(e).__name__}: {e}") from e
+    if not hasattr(module, name):
+        found = sorted(k for k, v in vars(module).items() if isinstance(v, SafeSet))
+        raise SafeSetError(f"safe set {ref!r}: {path} has no {name!r}; SafeSets there: "
+                           f"{', '.join(found) or 'none'}")
+    obj = getattr(module, name)
+    if callable(obj) and not isinstance(obj, SafeSet):
+        obj = obj()
+    if not isinstance(obj, SafeSet):
+        raise SafeSetError(f"safe set {ref!r}: {name} is a {type(obj).__name__}, not a "
+                           "safewbc_jax.safesets.SafeSet")
+    return obj
