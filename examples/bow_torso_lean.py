@@ -25,8 +25,8 @@ def torso_lean(model, q, threshold, domain=None):
     return threshold - robot.torso_euler(model, q)[1]
 
 
-TORSO_LEAN = SafeSet("torso_lean", torso_lean, relative_degree=2, poles=(5.0, 5.0),
-                     threshold=0.9)
+TORSO_LEAN = SafeSet("torso_lean", torso_lean, relative_degree=2, poles=(10.0, 10.0),
+                     threshold=0.9, unit="rad")
 
 
 if __name__ == "__main__":

@@ -147,6 +147,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
         metrics["push"] = {"force_N": [float(f) for f in push], "at_s": push_at,
                            "for_s": push_for}
     metrics["safe_sets"] = [s if isinstance(s, str) else s.name for s in safe_sets]
+    metrics["barrier_unit"] = {s.name: s.unit for s in scenario.safe_sets}
     metrics["threshold"] = {k: float(v) for k, v in params.threshold.items()}
     metrics["poles"] = {k: np.asarray(v).tolist() for k, v in params.poles.items()}
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
@@ -179,7 +180,8 @@ def format_summary(m: dict) -> str:
              f"{m['latency_breakdown_us_p50']['solve']:.0f})",
              "  tracking RMS: " + ", ".join(f"{k} {v:.4f}" for k, v in m["tracking_rms"].items())]
     if m["barrier_min"]:
-        lines.append("  barrier min h: " + ", ".join(f"{k} {v * 1000:+.1f} mm"
+        unit = m.get("barrier_unit", {})   # h in milli-units: mm, mrad, mm/s
+        lines.append("  barrier min h: " + ", ".join(f"{k} {v * 1000:+.1f} m{unit.get(k, 'm')}"
                                                      for k, v in m["barrier_min"].items()))
     if "avg_forward_speed" in m:
         lines.append(f"  walking: avg forward speed {m['avg_forward_speed']:.3f} m/s, steps "

@@ -16,7 +16,8 @@ A ``SafeSet`` carries everything a scenario needs of one barrier:
 * ``check_domain(model, q) -> domain``: where Theorem 1 is checked for a barrier that is
   not active at the start state (the swing-foot barrier: at the start of the first step);
   None: at the start state itself;
-* ``enforce``: False evaluates h for the metrics and plots only (a monitor).
+* ``enforce``: False evaluates h for the metrics and plots only (a monitor);
+* ``unit``: the unit of h, for the summaries ("m", "rad", "m/s", ...).
 
 A user adds one from their own file: ``load("path/to/file.py:NAME")`` imports the file and
 returns its ``NAME`` (a SafeSet, or a function of no arguments that returns one); the
@@ -52,6 +53,7 @@ class SafeSet:
     active: Callable | None = None
     check_domain: Callable | None = None
     enforce: bool = True
+    unit: str = "m"
 
     def __post_init__(self):
         where = f"safe set {self.name!r}"
