@@ -23,7 +23,7 @@ ALIP state, per horizontal axis, about the stance contact point c:
   ``L_c,x ~= -m H v_y``, so in both axes ``L^alip ~= m H p_dot``: positive L moves the
   CoM towards +x (sagittal) or +y (lateral, to the left).
 
-ALIP dynamics [1, eq. of the ALIP]: with a passive stance ankle (zero ankle torque) the only
+ALIP dynamics [1]: with a passive stance ankle (zero ankle torque) the only
 moment about c is gravity's, ``L_c_dot = (p_com - c) x (m g_vec)``, which gives exactly
 ``L^alip_dot = m g p``; the kinematic relation ``p_dot = L^alip / (m H)`` holds when the
 centroidal angular momentum and the vertical CoM velocity are neglected. Per axis
@@ -109,7 +109,7 @@ DEFAULT_T = 0.35      # step period of the paper (s)
 DEFAULT_H = 0.9       # CoM height of the paper (m)
 DEFAULT_G = 9.81
 SWING_HEIGHT = 0.08   # apex of the swing-foot height profile (m)
-SWING_RATE = 5.0      # rate of the paper's smoothing factor s = 1 - exp(-rate tau / T)
+SWING_RATE = 5.0      # rate of the paper's smoothing factor s = 1 - exp(-rate tau / T) (eq. 37)
 LAND_SPEED = 0.2      # m/s: descent of the "land" swing profile at tau = T and after
 LAND_DEPTH = 0.05     # m: the "land" profile stops descending this far below the ground
 
@@ -326,7 +326,7 @@ def swing_foot_reference(tau, T, p_sw0, u, height=SWING_HEIGHT, rate=SWING_RATE,
                          horizontal="paper", reach=1.0):
     """Swing-foot position reference and its first two time derivatives (analytic).
 
-    Horizontal (the paper's formula): ``p_xy(tau) = p_sw0 + s(tau) (u - p_sw0)`` with the
+    Horizontal (the paper's formula, eq. 37): ``p_xy(tau) = p_sw0 + s(tau) (u - p_sw0)`` with the
     smoothing factor ``s = 1 - exp(-rate tau / T)`` (rate = 5), where ``p_sw0`` [2] is the
     swing foot at the start of the step and ``u`` [2] the planned foot placement, both
     relative to the stance foot in the heading frame. Note ``s(T) = 1 - e^-5 ~= 0.9933``:
@@ -341,9 +341,9 @@ def swing_foot_reference(tau, T, p_sw0, u, height=SWING_HEIGHT, rate=SWING_RATE,
     feed-forward that saturates the hips at every lift-off on this model.
 
     Vertical, ``vertical="sine"`` (static): ``z(tau) = z0 + height sin(pi tau / T)`` for
-    tau in [0, T] and z0 outside. This differs from the printed ``0.08 sin(2 pi tau / T)``,
-    which returns to 0 at T/2 and is negative (foot below the ground) over the second half
-    of the step; with ``pi tau / T`` the foot lifts off at tau = 0, peaks at ``height``
+    tau in [0, T] and z0 outside. This differs from the printed
+    ``0.08 sin(2 pi tau / T)`` of eq. 37, which returns to 0 at T/2 and is negative (foot
+    below the ground) over the second half of the step; with ``pi tau / T`` the foot lifts off at tau = 0, peaks at ``height``
     (0.08 m) at mid-step and touches down at tau = T (with vertical velocity
     ``-height pi / T``, 0.72 m/s for the defaults: a hard landing).
 

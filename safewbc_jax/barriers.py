@@ -4,13 +4,13 @@ This module follows the paper's section "Exponential control barrier functions".
 set C = {x : h(x) >= 0} is described by a smooth barrier h of relative degree r_b. Its
 lower derivatives are stacked into
 
-    eta_b = [h, h^(1), ..., h^(r_b - 1)]                                  (19)
+    eta_b = [h, h^(1), ..., h^(r_b - 1)]                              (eq. 19)
 
 which obeys the integrator chain eta_dot = F eta + G nu, h = C eta (eqs. 20, 21), with
 nu = h^(r_b). Choosing K_alpha so that the closed loop
 eta_dot = (F - G K_alpha) eta has its roots at -p_1, ..., -p_rb and asking
 
-    nu >= -K_alpha eta                                                     (22)
+    nu >= -K_alpha eta                                                 (eq. 22)
 
 gives, by the comparison lemma, h(x(t)) >= C e^{(F - G K_alpha) t} eta(x_0). Theorem 1
 (eqs. 23-25) says when this bound is itself non-negative (see :func:`admissible_pole_bounds`).
@@ -18,7 +18,7 @@ gives, by the comparison lemma, h(x(t)) >= C e^{(F - G K_alpha) t} eta(x_0). The
 In the inverse-dynamics QP the input is the generalized acceleration q_ddot (the
 decision variable X = [q_ddot, u, lambda]), and the certificate becomes the A-ECBF row
 
-    L_F^rb h + L_G L_F^(rb-1) h q_ddot >= -K_alpha eta                     (28)
+    L_F^rb h + L_G L_F^(rb-1) h q_ddot >= -K_alpha eta                 (eq. 28)
 
 For a barrier h(q) of the configuration (relative degree 2 in q_ddot):
     eta = [h, J_h v],   L_F^2 h = J_h_dot v,   L_G L_F h = J_h,
@@ -120,7 +120,7 @@ def comparison_bound(eta0, poles, t):
 def b_functions(eta, poles):
     """[B_0, ..., B_{r-1}] of Theorem 1, written through eta = [h, h_dot, ..., h^(r-1)]:
 
-        B_0 = h,   B_i = B_{i-1}_dot + p_i B_{i-1}   (i = 1..r-1),
+        B_0 = h,   B_i = B_{i-1}_dot + p_i B_{i-1}   (i = 1..r-1; eqs. 23-24),
 
     i.e. B_i = prod_{k <= i}(d/dt + p_k) h, a linear combination of h..h^(i) with the
     coefficients of prod_{k <= i}(s + p_k). (B_r = h^(r) + K_alpha eta needs h^(r), the
@@ -149,7 +149,7 @@ def b_function_rates(eta, poles, h_r=None):
 def admissible_pole_bounds(eta0, poles, h_r0=None):
     """Lower bound on each pole p_i from Theorem 1 at the start state x_0:
 
-        p_i > 0  and  p_i >= -B_{i-1}_dot(x_0) / B_{i-1}(x_0),   i = 1..r.
+        p_i > 0  and  p_i >= -B_{i-1}_dot(x_0) / B_{i-1}(x_0),   i = 1..r   (eq. 25).
 
     "Admissible" poles are those for which B_0(x_0), ..., B_{r-1}(x_0) are all >= 0: then
     B_r >= 0 (the A-ECBF constraint) propagates down the chain,
@@ -256,8 +256,9 @@ class AECBFRow(NamedTuple):
 
 
 def aecbf_inequality(eta, lf_r_h, lg_lf_h, k_alpha):
-    """Eq. (28) rearranged: L_F^r h + L_G L_F^(r-1) h q_ddot >= -K_alpha eta  <=>
-    a_row @ q_ddot >= b with a_row = L_G L_F^(r-1) h, b = -K_alpha eta - L_F^r h.
+    """The A-ECBF condition, eq. 28, rearranged:
+    L_F^r h + L_G L_F^(r-1) h q_ddot >= -K_alpha eta  <=>  a_row @ q_ddot >= b
+    with a_row = L_G L_F^(r-1) h, b = -K_alpha eta - L_F^r h.
 
     Algebraic, any relative degree; returns (a_row, b)."""
     b = -jnp.sum(jnp.asarray(k_alpha) * jnp.asarray(eta), axis=-1) - lf_r_h
@@ -294,7 +295,7 @@ def barrier_lie_derivatives(h_fn, q, v, relative_degree: int = 2):
 
 
 def aecbf_row(h_fn, q, v, poles, relative_degree: int = 2) -> AECBFRow:
-    """The A-ECBF row a_row @ q_ddot >= b of eq. (28) for the barrier ``h_fn`` at (q, v)
+    """The A-ECBF row a_row @ q_ddot >= b of eq. 28 for the barrier ``h_fn`` at (q, v)
     with the closed-loop roots -poles (K_alpha from :func:`k_alpha_from_poles`).
 
     ``h_fn(q)`` for relative degree 2, ``h_fn(q, v)`` for relative degree 1 (see

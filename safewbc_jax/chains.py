@@ -4,7 +4,7 @@ Paper, "Closed kinematic chain constraints" and "Simulation and Experimental Res
 each rod is virtually disconnected and its length n_k(q) held constant, and the shin and
 heel springs are held rigid, giving per leg
 
-    n_kc = [n_ach, n_rA, n_rB, q_shin, q_heel-spring]      (left leg, then right leg)
+    n_kc = [n_ach, n_rA, n_rB, q_shin, q_heel-spring]      (eq. 29; left leg, then right leg)
 
 and the constraint rows J_chain(q) q_ddot + J_chain_dot(q, v) v = 0 (eq. 2).
 """

@@ -21,8 +21,8 @@ Conventions used throughout
 * lambda^c is the wrench of the GROUND ON THE ROBOT, applied at the sole site origin and
   expressed in the contact frame. The contact Jacobian is the sole Jacobian expressed in
   that frame, J_cont = blockdiag(R^T, R^T) J_world, so that J_cont^T lambda^c is the
-  generalized force of the wrench and eq. (1) reads M q_ddot + h = B u + J_cont^T lambda.
-* The stacked wrench of both feet is lambda = [lambda^left (6); lambda^right (6)] (12).
+  generalized force of the wrench and eq. 1 reads M q_ddot + h = B u + J_cont^T lambda.
+* The stacked wrench of both feet is lambda = [lambda^left (6); lambda^right (6)] (12 entries).
 * ``in_contact`` is a length-2 array (left, right); an entry > 0.5 means "in contact". A
   foot not in contact gives rows ``0 <= 1`` (its wrench is forced to zero elsewhere), so
   every output has the same shape in single, double and no support: a batched solver can
@@ -91,7 +91,7 @@ def _contact_jacobians(model: RobotModel, q, frames, kin=None):
 
 
 def contact_jacobian(model: RobotModel, q, frame: str):
-    """J_cont of eq. (3) for one foot: the sole site's 6 x nv Jacobian with both its
+    """J_cont of eq. 3 for one foot: the sole site's 6 x nv Jacobian with both its
     linear and angular rows expressed in the contact (sole) frame,
     J_cont = blockdiag(R^T, R^T) J_world. Then J_cont^T lambda^c is the generalized force
     of the contact-frame wrench lambda^c applied at the sole origin."""
@@ -108,14 +108,14 @@ def stacked_contact_jacobian(model: RobotModel, q, kin=None):
 # --------------------------------------------------------------------------------------
 
 def friction_rows(mu, gamma, f_min):
-    """Rows G_c lambda^c <= h_c of eqs. (4)-(7) for one contact wrench (7 x 6, 7):
+    """Rows G_c lambda^c <= h_c of eqs. 4-7 for one contact wrench (7 x 6, 7):
 
         [ f_x - mu/sqrt(2) f_z <= 0,  -f_x - mu/sqrt(2) f_z <= 0,
           f_y - mu/sqrt(2) f_z <= 0,  -f_y - mu/sqrt(2) f_z <= 0,
          -f_z <= -f_min,
           m_z - gamma f_z <= 0,       -m_z - gamma f_z <= 0 ].
 
-    The strict f_z > 0 of eq. (6) becomes f_z >= f_min > 0 (a QP needs closed sets)."""
+    The strict f_z > 0 of eq. 6 becomes f_z >= f_min > 0 (a QP needs closed sets)."""
     mu_p = jnp.asarray(mu) / jnp.sqrt(2.0)
     gamma = jnp.asarray(gamma)
     z = jnp.zeros_like(mu_p)
@@ -138,7 +138,7 @@ def _contact_flags(in_contact):
 
 
 def stacked_friction_rows(in_contact, mu, gamma, f_min):
-    """Eqs. (4)-(7) for both feet over the stacked 12-vector lambda: (14 x 12, 14), left
+    """The rows of eqs. 4-7 for both feet over the stacked 12-vector lambda: (14 x 12, 14), left
     foot's 7 rows then the right foot's. A foot not in contact gets rows 0 <= 1."""
     g, h = friction_rows(mu, gamma, f_min)
     c = _contact_flags(in_contact)
@@ -179,7 +179,7 @@ def cop_rows(in_contact, margin=0.0, sole=(SOLE_LENGTH, SOLE_WIDTH)):
 # --------------------------------------------------------------------------------------
 
 def adjoint_wrench_map(p, r):
-    """Ad^T of eq. (8) for one contact: the 6 x 6 matrix taking a wrench [f; m] given in a
+    """Ad^T of eq. 8 for one contact: the 6 x 6 matrix taking a wrench [f; m] given in a
     frame with world position p and rotation r (applied at p) to the same wrench in world
     coordinates about the world origin, [R f; R m + p x (R f)]."""
     z = jnp.zeros((3, 3), r.dtype)
@@ -221,7 +221,7 @@ def _zmp_from_world_wrench(wrench, z0):
 def zmp(model: RobotModel, q, lambdas, in_contact=(1.0, 1.0)):
     """Zero moment point (x, y) on the ground plane z = z0 (eq. 9's p_zmp).
 
-    With lambda^w = [F; M] from eq. (8) (ground reaction on the robot, moment about the
+    With lambda^w = [F; M] from eq. 8 (ground reaction on the robot, moment about the
     world origin), the ZMP is the point p = (x, y, z0) about which the wrench has no
     horizontal moment: M = p x F + tau e_z. Its x and y rows, M_x = y F_z - z0 F_y and
     M_y = z0 F_x - x F_z, give
@@ -342,7 +342,7 @@ def _support_polygon(poses, in_contact, margin, sole):
 
 def support_polygon(model: RobotModel, q, in_contact, margin=0.0,
                     sole=(SOLE_LENGTH, SOLE_WIDTH)) -> SupportPolygon:
-    """The support polygon P of eq. (9), shrunk inward by ``margin`` (m).
+    """The support polygon P of eq. 9, shrunk inward by ``margin`` (m).
 
     Single support: the rectangle of the sole in contact. Double support: the convex hull
     of both soles' 8 corners. Both come from the same 8-point hull: a foot not in contact
@@ -353,7 +353,7 @@ def support_polygon(model: RobotModel, q, in_contact, margin=0.0,
 
 def zmp_rows(model: RobotModel, q, in_contact, margin=0.0, sole=(SOLE_LENGTH, SOLE_WIDTH),
              kin=None):
-    """Eq. (9) as linear rows over the stacked lambda (12): (G 8 x 12, h 8).
+    """The ZMP condition (eq. 9) as linear rows over the stacked lambda (12): (G 8 x 12, h 8).
 
     For an edge n . p <= d - margin of :func:`support_polygon`, multiplying by F_z > 0
     (the world vertical force, positive whenever every contact has f_z >= f_min and the

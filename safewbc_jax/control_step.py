@@ -15,10 +15,10 @@ between them on the host and ``conclude`` after the command is out. Nothing in e
 * the measurement check (``state_ok``): a refused measurement holds the last good torque,
   does not advance the gait or the clock, and is counted (``bad_measurements``);
 * the clock: tau = (t - t_first) - settle, from the first good measurement;
-* walking: the gait (``scenario.gait``, ``walking.AlipGait``) advanced over the control periods since the last
-  good step, from the soles' normal forces of the measurement and the soles' positions by
-  the controller's forward kinematics of q; the domain; the swing leg's rates with rigid
-  springs (``walking.rigid_spring_velocity``);
+* walking: the gait (``scenario.gait``, ``walking.AlipGait``) advanced over the control
+  periods since the last good step, from the soles' normal forces of the measurement and the
+  soles' positions by the controller's forward kinematics of q; the domain; the swing leg's
+  rates with rigid springs (``walking.rigid_spring_velocity``);
 * the QP (``controller.robot_terms``, ``controller.build_qp``);
 * the torque: the solution's u, or the last good u where the QP failed (``hold_torque``);
   the motor torques in the robot's motor order (``MotorArrays.to_motor``);

@@ -36,7 +36,7 @@ def constraint_jacobian(model: robot.RobotModel, q, kin=None):
 
 
 def constraint_drift(model: robot.RobotModel, kin, motion: robot.BodyMotion):
-    """J_dot v of [J_chain; J_cont] (22) in closed form from the body motion of the state.
+    """J_dot v of [J_chain; J_cont] (22 rows) in closed form from the body motion of the state.
 
     A rod row is u^T (J_a - J_b) with u = d / |d|, d = p_a - p_b: its drift is
     (|d_dot|^2 - (u . d_dot)^2) / |d| + u . (a_a - a_b), a the points' bias
@@ -144,7 +144,7 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
         # A passive joint (the stance ankle of the ALIP gait) is one whose motors give no
         # torque: its bounds become 0 <= u <= 0.
         u_max = u_max * (1.0 - scenario.gait.passive_actuators(model, domain))
-    # Holonomic rows J q_ddot = -J_dot v - kd J v: kd = 0 is eq. (2)-(3) as written.
+    # Holonomic rows J q_ddot = -J_dot v - kd J v: kd = 0 is eqs. 2-3 as written.
     jdot_v = terms.Jdot_v + params.kd_constraint * (terms.J @ v)
     qpm = qp.assemble(M=terms.M, h=terms.h, B=model.B, J=terms.J, Jdot_v=jdot_v,
                       contact_rows=contact_rows, in_contact_rows=in_rows, task_P=task_p,

@@ -1,7 +1,7 @@
 """Task-space outputs y^a(q) with their Jacobian J_y(q) and drift J_y_dot(q, v) v.
 
 Paper, "Task Space Inverse dynamics": y(t, q) = y^a(q) - y^d(t), y_dot = J_y v - y^d_dot,
-y_ddot = J_y_dot v + J_y q_ddot - y^d_ddot (eq. 11). Each output is one small object with
+y_ddot = J_y_dot v + J_y q_ddot - y^d_ddot (eqs. 10-12). Each output is one small object with
 the same interface, ``evaluate(model, q, v) -> (y^a, J_y, J_y_dot v)``; a new output is a
 new class here, nothing else changes.
 """
@@ -61,7 +61,7 @@ class CoMPosition(Output):
 
 @dataclasses.dataclass(frozen=True)
 class CoMHeight(Output):
-    """z_CoM(q) (1), the ALIP domain's height output."""
+    """z_CoM(q) (dim 1), the ALIP domain's height output."""
 
     name: str = "com_z"
     dim = 1

@@ -1,6 +1,6 @@
 """``ControllerParams``: every gain a user may sweep, as one pytree.
 
-Per output: K_p, K_d (y* = -K_p y - K_d y_dot + y^d_ddot, paper eq. 14) and the cost
+Per output: K_p, K_d (y* = -K_p y - K_d y_dot + y^d_ddot, paper eq. 15) and the cost
 weight W; the diagonal of Gamma (regulariser X^T Gamma X) per block of X = [q_ddot, u,
 lambda]; contact parameters mu (friction), gamma (torsion), f_min (least normal force),
 the ZMP margin; per barrier its poles p_1..p_r (K_alpha from Theorem 1) and threshold.

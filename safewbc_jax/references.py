@@ -23,7 +23,7 @@ def with_derivatives(fn, tau):
 
 
 def squat_com(tau):
-    """Paper, "Task: Squatting and bowing": p^d_CoM(tau) =
+    """Paper, "Task: Squatting and bowing", eq. 31: p^d_CoM(tau) =
     [-0.02, 0, 1 - 0.12 (1 - e^-tau) + 0.03 sin(pi tau)] (m; x, y relative to the stance
     frame, z above the ground)."""
     z = 1.0 - 0.12 * (1.0 - jnp.exp(-tau)) + 0.03 * jnp.sin(jnp.pi * tau)
@@ -31,7 +31,7 @@ def squat_com(tau):
 
 
 def bow_torso(tau):
-    """Paper, bowing: theta^d_torso(tau) = [0, 0.45 max(3 - |tau - 3|, 0), 0] (rad)."""
+    """Paper, bowing, eq. 32: theta^d_torso(tau) = [0, 0.45 max(3 - |tau - 3|, 0), 0] (rad)."""
     pitch = 0.45 * jnp.maximum(3.0 - jnp.abs(tau - 3.0), 0.0)
     return jnp.stack([0.0 * tau, pitch, 0.0 * tau])
 
@@ -40,7 +40,7 @@ BOW_COM = (0.0, 0.0, 0.95)
 
 
 def arm_offsets(tau):
-    """Paper, "Task: Arm motion with height limits": q^d_arm_L = [0, 0.3 s, 0, 0.2 s],
+    """Paper, "Task: Arm motion with height limits", eqs. 35-36: q^d_arm_L = [0, 0.3 s, 0, 0.2 s],
     q^d_arm_R = -q^d_arm_L with s = sin(pi tau / 5), joints (shoulder roll, pitch, yaw,
     elbow). Applied as offsets from the held arm posture (see ``scenarios``)."""
     s = jnp.sin(jnp.pi * tau / 5.0)

@@ -1,7 +1,7 @@
 """Robot terms of the controller model as pure JAX functions.
 
 The controller model is Digit's floating base plus its 30 hinges (36 DoF), rods left out
-(``models/digit_controller.xml``). Its equations of motion are the paper's eq. (1),
+(``models/digit_controller.xml``). Its equations of motion are the paper's eq. 1,
 
     M(q) q_ddot + C(q, v) v + G(q) = B u + J(q)^T lambda,
 
@@ -56,7 +56,7 @@ class RobotModel:
     joint torques u), ``gear`` and joint ``torque_limit`` (N m) per actuator;
     ``ancestor_dof[b, k]`` is 1 where dof k moves body b.
 
-    Closed chains (the paper's n_kc): each rod left out of the tree is the pair of sites
+    Closed chains (the paper's n_kc, eq. 29): each rod left out of the tree is the pair of sites
     ``<rod>-anchor`` / ``<rod>-ball`` (``rod_sites``) held ``rod_length`` apart (their
     distance in the zero configuration, where every published loop closes); each spring
     joint (``spring_dofs``) is held at 0."""

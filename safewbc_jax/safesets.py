@@ -79,7 +79,7 @@ class SafeSet:
         object.__setattr__(self, "threshold", float(self.threshold))
 
     def h_fn(self, model, threshold, domain=None):
-        """The barrier as ``barriers`` takes it: h_fn(q) (degree 2) or h_fn(q, v) (1)."""
+        """The barrier as ``barriers`` takes it: h_fn(q) (degree 2) or h_fn(q, v) (degree 1)."""
         if self.relative_degree == 2:
             return lambda q: self.h(model, q, threshold, domain)
         return lambda q, v: self.h(model, q, v, threshold, domain)

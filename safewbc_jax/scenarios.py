@@ -15,7 +15,7 @@ from safewbc_jax.safesets import SafeSet, SafeSetError, load
 from safewbc_jax.scenario import Scenario, start_state  # noqa: F401  (re-exported)
 from safewbc_jax.tasks import Task
 
-# Threshold of the arm barrier h = -p_z - c (m). The paper's c = 0.195 refers to its own
+# Threshold of the arm barrier h = -p_z - c (m). The paper's c = 0.195 (eq. 33) refers to its own
 # torso base frame; in this model's base frame (at hip height) the fists hang at
 # p_z = -0.10 m, where c = 0.195 would make the start unsafe (Theorem 1 then does not
 # apply). c = 0.05 keeps the paper's situation: the start is safe by 5 cm, and the commanded
@@ -33,7 +33,7 @@ def _fist_height(side):
 
 
 def fist_barrier(side, enforce=True):
-    """Paper, arm task: h(q) = -p_z(q) - c >= 0, p_z the fist's height in the torso base
+    """Paper, arm task, eq. 33: h(q) = -p_z(q) - c >= 0, p_z the fist's height in the torso base
     frame."""
     return SafeSet(f"{side}_fist", _fist_height(side), 2, ARM_POLES, ARM_THRESHOLD,
                    enforce=enforce)

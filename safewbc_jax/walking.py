@@ -4,7 +4,7 @@ references, and the gait state that switches domains.
 Paper, "Task: Walking with the A-LIP template model": in single support the outputs are
 z_CoM = H, the torso held vertical, the swing foot's position following
 p^d_swing(tau) towards the ALIP foot placement (u_x, u_y), and the swing foot kept flat
-(eq. yALIP); here the arms are held too. Before walking the robot stands (double support,
+(eq. 38); here the arms are held too. Before walking the robot stands (double support,
 the CoM blended to the walking height). The planner is ``alip.plan_foot_placement``,
 re-planned at every control step from the measured state.
 
@@ -19,7 +19,7 @@ pitch and roll through the rods) get the bounds 0 <= u <= 0 (``passive_actuators
 
 What differs from the paper's printed task, and why (measured in MuJoCo on this model):
 
-* Swing-foot profile. Horizontally the paper blends with s = 1 - exp(-5 tau / T), whose
+* Swing-foot profile. Horizontally the paper (eq. 37) blends with s = 1 - exp(-5 tau / T), whose
   slope at lift-off is 5/T: a 0.3 m step starts the foot at ~4 m/s, and the lift-off
   feed-forward saturated the hips at every switch. The default here is the minimum-jerk
   blend (``alip.swing_foot_reference(horizontal="minjerk")``: at rest at lift-off, on the
@@ -56,7 +56,7 @@ from safewbc_jax.solvers import lapack_batched as lb
 H_WALK = 0.9            # CoM height (m), paper
 STEP_T = 0.35           # step period (s), paper
 STEP_WIDTH = 0.22       # commanded lateral foot-to-foot distance (m): the stand pose's
-SWING_MARGIN = 0.07     # collision barrier h = y_sw - 0.07 (paper)
+SWING_MARGIN = 0.07     # collision barrier h = y_sw - 0.07 (paper, eq. 39)
 SWING_POLES = (20.0, 20.0)
 # Gait start: before the first (left-stance) step the CoM is moved over the inside edge of
 # the left foot, this far (m) to the right of the sole centre, so that the passive-ankle
@@ -192,9 +192,9 @@ def _heading_lateral(model, q, domain):
 
 
 def swing_clearance_h(model, q, threshold, domain):
-    """Paper, "Task: Collision avoidance": h_ALIP(q) = y_sw(q) - 0.07 >= 0, y_sw the lateral
-    position of the swing foot relative to the stance foot, signed so that it is positive
-    when the feet are apart whichever foot swings."""
+    """Paper, "Task: Collision avoidance", eq. 39: h_ALIP(q) = y_sw(q) - 0.07 >= 0, y_sw the
+    lateral position of the swing foot relative to the stance foot, signed so that it is
+    positive when the feet are apart whichever foot swings."""
     return _heading_lateral(model, q, domain) - threshold
 
 

@@ -45,14 +45,14 @@ def chain_drift(model: RobotModel, q, v):
 
 
 def contact_drift(model: RobotModel, q, v, frame: str):
-    """J_cont_dot v of eq. (3): d/dt (J_cont(q) v) along q(t) = integrate(q, v t). It
+    """J_cont_dot v of eq. 3: d/dt (J_cont(q) v) along q(t) = integrate(q, v t). It
     includes the rotation of the contact frame itself, so it is not R^T times
     robot.frame_drift unless the sole is at rest (J_cont v = 0)."""
     return spatial.derivative_along(lambda qq: contact_jacobian(model, qq, frame) @ v, q, v)
 
 
 def stacked_contact_drift(model: RobotModel, q, v):
-    """[J_cont_dot^left v; J_cont_dot^right v] (12), eq. (3)'s drift for both feet."""
+    """[J_cont_dot^left v; J_cont_dot^right v] (12), eq. 3's drift for both feet."""
     return spatial.derivative_along(lambda qq: stacked_contact_jacobian(model, qq) @ v, q, v)
 
 
