@@ -63,9 +63,7 @@ def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=
     an option that would have no effect in this scenario (``--speed`` when not walking,
     ``--at``/``--for`` without a push) is refused rather than ignored. Returns the
     effective duration, settle, speed, push, push_at and push_for."""
-    from safewbc_jax.scenarios import WALKING
-
-    walking = name in WALKING
+    walking = scenario.gait is not None
     duration = scenario.duration if duration is None else _finite("--duration", duration)
     if not 0 < duration <= MAX_DURATION:
         raise ValueError(f"--duration {duration:g}: seconds of motion must be in (0, "
@@ -75,11 +73,12 @@ def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=
         raise ValueError(f"--settle {settle:g}: must be in [{scenario.blend:g}, {MAX_SETTLE:g}] s "
                          f"(at least the {scenario.blend:g} s reference blend)")
     if speed is not None and not walking:
+        from safewbc_jax.scenarios import WALKING
+
         raise ValueError(f"--speed applies to the walking scenarios {list(WALKING)}, not {name!r}")
     if walking:
-        from safewbc_jax.walking import check_speed
-
-        speed = 0.2 if speed is None else check_speed(_finite("--speed", speed), "--speed")
+        speed = 0.2 if speed is None else scenario.gait.check_speed(_finite("--speed", speed),
+                                                                    "--speed")
     if name == "push" and push is None:
         push = PAPER_PUSH
     if push is None:

@@ -23,7 +23,9 @@ from safewbc_jax.sweeps import table as table_mod
 
 ROOT = Path(__file__).resolve().parents[1]
 BATCH = 2
-SPEC = """
+# The spec adds a user's safe set from its file (the torso-lean limit of examples/, inactive
+# in the arms scenario: the torso stays upright), so the batched path runs one too.
+SPEC = f"""
 [sweep]
 scenario = "arms"
 duration = 0.05
@@ -31,9 +33,11 @@ settle = 1.0
 repeats = 2
 seed = 7
 violation_tol = 0.001
+safe_sets = ["{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"]
 
 [grid]
 "poles.left_fist.p1" = [5.0, 20.0]
+"threshold.torso_lean" = [0.9]
 
 [perturb]
 base_linear = 0.02
@@ -124,6 +128,11 @@ def test_killed_sweep_keeps_a_readable_table_and_resumes(sweeps):
     assert np.all((cols["barrier_min.left_fist"] > 0.035) & (cols["barrier_min.left_fist"] < 0.0505))
     assert np.all(cols["foot_slip_max"] < 0.005)
     assert np.all(cols["perturb.norm"] > 0.01)
+    # the user's safe set: a column of its own, h = 0.9 - pitch with the torso upright
+    np.testing.assert_array_equal(cols["threshold.torso_lean"], 0.9)
+    assert np.all((cols["barrier_min.torso_lean"] > 0.85) & (cols["barrier_min.torso_lean"] < 0.95))
+    manifest = __import__("json").loads((a / table_mod.MANIFEST).read_text())
+    assert manifest["safe_sets"] == [f"{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"]
     # the perturbations differ between rollouts, and so do the outcomes
     assert len(np.unique(cols["barrier_min.left_fist"])) == 4
 
