@@ -10,7 +10,8 @@ eq. (20), with the A-ECBF rows of eq. (27)):
            L_G L_F h q_ddot >= -K_alpha eta - L_F^2 h          (A-ECBF, one row per barrier)
            -u_max <= u <= u_max                                 (torque limits)
 
-written as the seam pytree ``QP`` (min 1/2 x'Px + q'x, Ax = b, Gx <= h, lb <= x <= ub).
+written as the seam pytree ``QP`` (min 1/2 x'Px + q'x, Ax = b, Gx <= h, lb <= x <= ub),
+which carries the block sizes nv, nu, nc of X as static data for the solvers.
 This module is pure algebra on arrays; ``controller`` computes the terms.
 """
 
@@ -65,9 +66,9 @@ def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_
     inf = jnp.full(nv, jnp.inf, dtype)
     lb = jnp.concatenate([-inf, -u_max, jnp.full(nc, -jnp.inf, dtype)])
     ub = jnp.concatenate([inf, u_max, jnp.full(nc, jnp.inf, dtype)])
-    return QP(P=P, q=q, A=A, b=b, G=G, h=hv, lb=lb, ub=ub, soft=soft)
+    return QP(P=P, q=q, A=A, b=b, G=G, h=hv, lb=lb, ub=ub, soft=soft, nv=nv, nu=nu, nc=nc)
 
 
-def split(x, nv, nu):
-    """X -> (q_ddot, u, lambda)."""
-    return x[:nv], x[nv:nv + nu], x[nv + nu:]
+def split(x, qp: QP):
+    """X -> (q_ddot, u, lambda), at the block sizes the QP carries (``QP.split``)."""
+    return qp.split(x)
