@@ -90,5 +90,7 @@ class QP:
         return tuple(getattr(self, f) for f in FIELDS)
 
     def with_arrays(self, fn) -> "QP":
-        """fn applied to every array field, the block sizes kept."""
-        return jax.tree_util.tree_map(fn, self)
+        """fn applied to every array field, the block sizes kept (``tree_map``'s result,
+        without its flattening: the host path calls this every control step)."""
+        return QP(*(fn(getattr(self, f)) for f in FIELDS), nv=self.nv, nu=self.nu,
+                  nc=self.nc)

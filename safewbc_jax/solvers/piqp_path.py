@@ -54,7 +54,7 @@ import numpy as np
 import piqp
 import qpsolvers
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.qp_types import FIELDS, QP
 from safewbc_jax.solvers import policy
 from safewbc_jax.solvers.policy import Attempt
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN, relax_soft_rows_np
@@ -90,7 +90,8 @@ def status_from_piqp(status) -> SolveStatus:
 def qp_to_numpy(qp: QP) -> QP:
     """The QP with float64 numpy arrays (a no-op copy-wise for numpy float64 input), the
     block sizes kept."""
-    return qp.with_arrays(lambda a: np.asarray(a, dtype=np.float64))
+    return QP(*[np.asarray(getattr(qp, f), dtype=np.float64) for f in FIELDS], nv=qp.nv,
+              nu=qp.nu, nc=qp.nc)
 
 
 def residuals(x: np.ndarray, qp: QP) -> tuple[float, float, float]:
@@ -239,10 +240,9 @@ class PiqpSolver:
         status, res = policy.accept(x, qp, status, self.feas_tol, np)
         nom = Attempt(x=x, status=status, res=res, max_slack=0.0, iterations=iters,
                       polished=False, polish_iterations=0)
-        if status == SolveStatus.SOLVED:
-            rel = policy.skipped(x, np)
-        else:
-            rel = self._solve_relaxed(qp, n, mi)
+        # accepted: nothing to relax (``finish`` without a relaxed attempt gives the same
+        # result then, relaxed_status NOT_ATTEMPTED); else (b), then (c) if that fails
+        rel = None if status == SolveStatus.SOLVED else self._solve_relaxed(qp, n, mi)
         out = policy.finish(nom, rel, np)
         self.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
         return out

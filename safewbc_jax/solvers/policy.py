@@ -48,34 +48,36 @@ def _select(xp):
 def residuals(x, qp: QP, xp=np, slack=None):
     """(max |Ax - b|, max violation over G rows and bounds, the same over hard rows only,
     and the violation of the relaxed QP's rows G x - s <= h, s >= 0 when ``slack`` s is
-    given, else the second again). Violations are >= 0."""
-    eq = xp.max(xp.abs(qp.A @ x - qp.b), initial=0.0)
-    bnd = xp.maximum(xp.max(xp.where(qp.lb > -BIG, qp.lb - x, 0.0), initial=0.0),
-                     xp.max(xp.where(qp.ub < BIG, x - qp.ub, 0.0), initial=0.0))
-    on = qp.h < BIG
+    given, else the second again). Violations are >= 0. An absent row or bound (h, ub
+    +inf or >= BIG, lb likewise) can only contribute a negative value to a maximum that
+    starts at 0, so no mask is needed for it (and for a finite x none is applied)."""
+    eq = xp.abs(qp.A @ x - qp.b).max(initial=0.0)
+    bnd = xp.maximum((qp.lb - x).max(initial=0.0), (x - qp.ub).max(initial=0.0))
     gx = qp.G @ x - qp.h
-    r = xp.where(on, gx, -xp.inf)
-    ineq = xp.maximum(bnd, xp.max(r, initial=0.0))
-    hard = xp.maximum(bnd, xp.max(xp.where(qp.soft > 0, -xp.inf, r), initial=0.0))
+    ineq = xp.maximum(bnd, gx.max(initial=0.0))
+    hard = xp.maximum(bnd, xp.where(qp.soft > 0, -xp.inf, gx).max(initial=0.0))
     if slack is None:
         return eq, ineq, hard, ineq
-    rel = xp.maximum(bnd, xp.max(xp.where(on, gx - slack, -xp.inf), initial=0.0))
-    rel = xp.maximum(rel, xp.max(-slack, initial=0.0))
+    rel = xp.maximum(bnd, (gx - slack).max(initial=0.0))
+    rel = xp.maximum(rel, (-slack).max(initial=0.0))
     return eq, ineq, hard, rel
 
 
 def scales(qp: QP, xp=np):
     """(1 + max |b|, 1 + the largest |h|, |lb|, |ub| below BIG): the acceptance's scales."""
-    eq_scale = 1.0 + xp.max(xp.abs(qp.b), initial=0.0)
+    eq_scale = 1.0 + xp.abs(qp.b).max(initial=0.0)
     v = xp.abs(xp.concatenate([qp.h, qp.lb, qp.ub]))
-    in_scale = 1.0 + xp.max(xp.where(v < BIG, v, 0.0), initial=0.0)
+    in_scale = 1.0 + xp.where(v < BIG, v, 0.0).max(initial=0.0)
     return eq_scale, in_scale
 
 
 def accept(x, qp: QP, status, feas_tol, xp=np, slack=None):
     """SOLVED stays SOLVED only where x is finite and its residuals pass (module
     docstring); ``slack`` (on G's rows) checks the relaxed QP's rows instead of G's.
-    Returns (status, (eq, ineq, hard))."""
+    Returns (status, (eq, ineq, hard)); on the host, where the solver did not report
+    SOLVED, the residuals are not computed (NaN: ``finish`` never uses them then)."""
+    if xp is not jnp and status != SOLVED:
+        return status, (float("nan"),) * 3
     eq_scale, in_scale = scales(qp, xp)
     eq, ineq, hard, chk = residuals(x, qp, xp, slack)
     good = xp.all(xp.isfinite(x)) & (eq <= feas_tol * eq_scale) & (chk <= feas_tol * in_scale)
