@@ -85,13 +85,13 @@ def main(argv=None) -> dict:
         qpm, _ = pk_qp.unpack(asm_fn(terms, q, v, tau))
         t2 = time.perf_counter()
         if k == 0:
-            bounded = reduce.bounded_variables(qpm, model.nv, model.nu)
+            bounded = reduce.bounded_variables(qpm)
             compile_s = time.perf_counter() - t_compile
-        red, rmap = reduce.eliminate_equalities_np(qpm, model.nv, model.nu, bounded)
+        red, rmap = reduce.eliminate_equalities_np(qpm, bounded)
         t3 = time.perf_counter()
-        z, info_r = solver_red.solve(red)
+        res_r = solver_red.solve(red)
         t4 = time.perf_counter()
-        x_full, info_f = solver_full.solve(qpm)
+        res_f = solver_full.solve(qpm)
         t5 = time.perf_counter()
         meas = Measurement(q, v, k * 1e-3)
         cmd = ctl.step(meas)
@@ -107,8 +107,8 @@ def main(argv=None) -> dict:
         for key, val in zip(("terms", "assembly", "reduce", "solve_reduced", "solve_full"),
                             (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
             rec[key].append(val * 1e6)
-        rec["iters_reduced"].append(info_r["iterations"])
-        rec["iters_full"].append(info_f["iterations"])
+        rec["iters_reduced"].append(res_r.iterations)
+        rec["iters_full"].append(res_f.iterations)
     skip = 20
     arr = {k: np.asarray(v[skip:]) for k, v in rec.items()}
     step = arr["terms"] + arr["assembly"] + arr["reduce"] + arr["solve_reduced"]

@@ -140,6 +140,10 @@ def main(argv=None) -> dict:
     data, source = load_qps(args.qps, args.limit, args.generate)
     pool = data["P"].shape[0]
 
+    # the recorded QPs are the controller's: X = [q_ddot (nv), u (nu), lambda]
+    NV, NU = 36, 20
+    sized = lambda arrays: QP(*arrays, nv=NV, nu=NU, nc=arrays[0].shape[-1] - NV - NU)  # noqa: E731
+
     def batch_np(B):
         idx = np.arange(B) % pool
         return {f: np.ascontiguousarray(data[f][idx]) for f in FIELDS}
@@ -150,17 +154,14 @@ def main(argv=None) -> dict:
     def run_piqp_full(qps_np):
         xs = []
         for i in range(qps_np["P"].shape[0]):
-            x, _ = piqp_full.solve(QP(*(qps_np[f][i] for f in FIELDS)))
-            xs.append(x)
+            xs.append(piqp_full.solve(sized([qps_np[f][i] for f in FIELDS])).x)
         return xs
 
     def run_piqp_red(qps_np):
         xs = []
         for i in range(qps_np["P"].shape[0]):
-            qp = QP(*(qps_np[f][i] for f in FIELDS))
-            red, rmap = reduce.eliminate_equalities_np(qp, 36, 20)
-            z, _ = piqp_red.solve(red)
-            xs.append(None if z is None else rmap.x0 + rmap.N @ z)
+            red, rmap = reduce.eliminate_equalities_np(sized([qps_np[f][i] for f in FIELDS]))
+            xs.append(reduce.expand(piqp_red.solve(red).x, rmap))
         return xs
 
     chunks = args.chunks if args.chunks is not None else [jax_qp.CPU_CHUNK]
@@ -172,7 +173,7 @@ def main(argv=None) -> dict:
     rows = []
     for B in args.batches:
         qnp = batch_np(B)
-        qj = QP(*(jnp.asarray(qnp[f]) for f in FIELDS))
+        qj = sized([jnp.asarray(qnp[f]) for f in FIELDS])
         Bp = min(B, args.piqp_max_batch)
         qnp_p = {f: qnp[f][:Bp] for f in FIELDS}
         compile_s = {}
@@ -213,7 +214,7 @@ def main(argv=None) -> dict:
             x = np.asarray(r.x[:Bp], np.float64)
             dx = []
             for i, xp in enumerate(xs_full):
-                if xp is not None and np.all(np.isfinite(x[i])):
+                if np.all(np.isfinite(xp)) and np.all(np.isfinite(x[i])):
                     dx.append(np.abs(x[i] - xp).max() / max(1.0, np.abs(xp).max()))
             row[f"{name}_max_rel_dx_vs_piqp"] = float(max(dx)) if dx else None
             row[f"{name}_solved"] = int(np.sum(np.asarray(r.status) == 0))

@@ -100,6 +100,7 @@ def main(argv=None) -> dict:
 
     from safewbc_jax.qp_types import QP
     from safewbc_jax.solvers.piqp_path import PiqpSolver
+    from safewbc_jax.solvers.result import fallback_name
 
     rng = np.random.default_rng(args.seed)
     order_rng = random.Random(args.seed)
@@ -136,12 +137,12 @@ def main(argv=None) -> dict:
         return run
 
     def run_cls_np(qp, _):
-        x, info = cls_np.solve(qp)
-        return x, info["iterations"]
+        r = cls_np.solve(qp)
+        return r.x, r.iterations
 
     def run_cls_jax(_, qpj):
-        x, info = cls_jax.solve(qpj)
-        return x, info["iterations"]
+        r = cls_jax.solve(qpj)
+        return r.x, r.iterations
 
     paths = {
         "qpsolvers": run_qpsolvers,
@@ -175,7 +176,7 @@ def main(argv=None) -> dict:
                 iters[name].append(it)
         ref = xs["qpsolvers"]
         for name, x in xs.items():
-            if x is None or ref is None:
+            if x is None or ref is None or not (np.all(np.isfinite(x)) and np.all(np.isfinite(ref))):
                 failures[name] += k >= args.warmup
             else:
                 max_dx[name] = max(max_dx[name], float(np.max(np.abs(x - ref))))
@@ -205,11 +206,11 @@ def main(argv=None) -> dict:
             stream = qp_stream(np.random.default_rng(args.seed + 1), args.fallback_steps + 5,
                                N, ME, args.mi, args.soft, args.eps)
             for k, qp in enumerate(stream):
-                x, info = solver.solve(conflict(qp, row, 40))
+                r = solver.solve(conflict(qp, row, 40))
                 if k >= 5:
-                    ts.append(info["solve_time_us"] * 1e3)
-                    its.append(info["iterations"])
-                    ok += info["fallback"] == expect
+                    ts.append(solver.last_solve_time_us * 1e3)
+                    its.append(r.iterations)
+                    ok += fallback_name(r.fallback) == expect
             fb[label] = {**stats(ts), "mean_iter": float(np.mean(its)),
                          "as_expected": ok}
 

@@ -6,7 +6,8 @@ and a real robot (``deploy.Controller``).
     tally, out      = conclude(ctx, run, tally, prep, sol)  # torque, motors, record, metrics
 
 ``prepare`` and ``conclude`` are pure JAX functions of typed pytrees; the QP between them is
-the seam to the solvers. ``prepare`` carries the ControllerState (gait, clock, last good
+the seam to the solvers, and their answer (``solvers.result.SolveResult``, the same type
+from either solver) comes back to ``conclude``. ``prepare`` carries the ControllerState (gait, clock, last good
 measurement), ``conclude`` the Tally (last good torque, metrics): the next ``prepare``
 does not wait for ``conclude``. The batched path composes the three in one traced step
 (``step_jax``); the single-robot path jits ``prepare`` and ``conclude`` apart, runs PIQP
@@ -39,6 +40,8 @@ import numpy as np
 
 from safewbc_jax import barriers, contacts, controller, metrics, robot, walking
 from safewbc_jax import scenario as scenario_mod
+from safewbc_jax.qp_types import Blocks
+from safewbc_jax.solvers.result import FALLBACK_FAILED, SolveResult
 
 FALL_HEIGHT = 0.55  # m: base below this counts as a fall
 # Measurement bounds. |quat| is 1 to ~1e-15 from any estimator that normalises; 1e-3 is far
@@ -102,10 +105,11 @@ class MotorArrays:
         return xp.clip(m, -self.motor_limit, self.motor_limit)
 
 
-def hold_torque(x, usable, last_u, nv, nu, xp=np):
-    """The torque to apply: the solution's u where the solve is usable, else the last good
-    u (the policy of every loop)."""
-    return xp.where(usable, x[nv:nv + nu], last_u)
+def hold_torque(x, usable, last_u, blocks: Blocks, xp=np):
+    """The torque to apply: the solution's u (``blocks``: the QP's block sizes, e.g.
+    ``QP.blocks``) where the solve is usable, else the last good u (the policy of every
+    loop)."""
+    return xp.where(usable, blocks.split(x)[1], last_u)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -123,6 +127,12 @@ class Context:
     @property
     def walking(self) -> bool:
         return self.scenario.gait is not None
+
+    @property
+    def blocks(self) -> Blocks:
+        """The block sizes of the QP's X = [q_ddot, u, lambda], the model's (``qp.assemble``
+        reads the same sizes off the model's B); ``conclude`` splits X with them."""
+        return Blocks(self.model.nv, self.model.nu)
 
     def __post_init__(self):
         # evaluated here, eagerly: under a jit trace jnp operations on the model's constants
@@ -197,17 +207,6 @@ def init_state(ctx: Context, q, v, xp=jnp, dtype=jnp.float64) -> tuple[Controlle
     return (ControllerState(walking.GaitState.standing(xp, dtype), xp.asarray(q, dtype),
                             xp.asarray(v, dtype), nan, nan, nan),
             Tally(xp.zeros(ctx.model.nu, dtype), metrics.control_init(ctx.scenario, xp, dtype)))
-
-
-class Solution(NamedTuple):
-    """A solver's answer to the QP of ``prepare``: x (NaN where failed), SolveStatus code,
-    fallback code (``jax_qp.FALLBACK_*``), iterations, max |A x - b| (NaN where failed)."""
-
-    x: jax.Array
-    status: jax.Array
-    fallback: jax.Array
-    iterations: jax.Array
-    eq_residual: jax.Array
 
 
 class Prepared(NamedTuple):
@@ -298,18 +297,17 @@ class StepRecord(NamedTuple):
     h: dict
 
 
-def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: Solution):
-    """The solver's answer -> (new Tally, Output): the torque held where the QP failed or
-    the measurement was refused, the motor torques, the record, the metrics accumulated.
-    Depends on ``prepare``'s output only (the gait of the record is the domain's)."""
-    from safewbc_jax.solvers.jax_qp import FALLBACK_FAILED
-
+def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: SolveResult):
+    """The solver's answer (a ``SolveResult`` over the full X, from either solver) ->
+    (new Tally, Output): the torque held where the QP failed or the measurement was
+    refused, the motor torques, the record, the metrics accumulated. Depends on
+    ``prepare``'s output only (the gait of the record is the domain's)."""
     model, sc = ctx.model, ctx.scenario
-    nv, nu = model.nv, model.nu
     x = jnp.asarray(sol.x)
     usable = prep.ok & (sol.fallback != FALLBACK_FAILED) & jnp.all(jnp.isfinite(x))
-    u = hold_torque(x, usable, tally.last_u, nv, nu, jnp)
-    lam = jnp.where(usable, x[nv + nu + controller.n_chain_rows(model):], jnp.nan)
+    u = hold_torque(x, usable, tally.last_u, ctx.blocks, jnp)
+    # lambda: the chain rows' forces first, then the contacts' (controller.build_qp)
+    lam = jnp.where(usable, ctx.blocks.split(x)[2][controller.n_chain_rows(model):], jnp.nan)
     domain = prep.domain
     in_contact = domain["in_contact"] if domain is not None else jnp.asarray(sc.in_contact)
     margin = contacts.zmp_margin(model, prep.q, jnp.where(usable, lam, 0.0),
@@ -334,14 +332,15 @@ def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: So
 
 def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState,
              tally: Tally, meas: Measurement):
-    """prepare -> the JAX QP solver (``jax_qp.solve``, fallback policy included) ->
-    conclude: the whole step in JAX (the batched path)."""
+    """prepare -> the JAX QP solver (``jax_qp.solve``, fallback policy included; the block
+    sizes from the QP) -> conclude: the whole step in JAX (the batched path). The
+    controller's P has no cross blocks (``qp.assemble``: Gamma diagonal, the tasks on
+    q_ddot), so only its diagonal blocks enter the elimination."""
     from safewbc_jax.solvers import jax_qp
 
     state, prep, qpm = prepare(ctx, params, start, run, state, meas)
-    res = jax_qp.solve(qpm, nv=ctx.model.nv, nu=ctx.model.nu, p_blockdiag=True)
-    sol = Solution(res.x, res.status, res.fallback, res.iterations, res.eq_residual)
-    tally, out = conclude(ctx, run, tally, prep, sol)
+    res = jax_qp.solve(qpm, p_blockdiag=True)
+    tally, out = conclude(ctx, run, tally, prep, res)
     return state, tally, out
 
 

@@ -29,8 +29,8 @@ import numpy as np
 from safewbc_jax import control_step, metrics, paths, robot, scenarios
 from safewbc_jax.packing import FlatTree, Packer
 from safewbc_jax.solvers import reduce
-from safewbc_jax.solvers.jax_qp import FALLBACK_NAMES
 from safewbc_jax.solvers.piqp_path import PiqpSolver
+from safewbc_jax.solvers.result import FALLBACK_FAILED, FALLBACK_RELAXED, fallback_name, failed
 from safewbc_jax.solvers.status import SolveStatus
 
 # the measurement bounds and the fall test are the control step's (one definition)
@@ -109,12 +109,13 @@ class MotorMap:
         return self.arrays().to_motor(np.asarray(u, float))
 
 
-def check_state(q, v) -> str:
-    """"ok", or why (q, v) is no state of the robot (shapes, NaN/inf, a quaternion off unit
-    length by more than QUAT_TOL, rates above MAX_RATE or a base speed above MAX_SPEED)."""
-    if np.shape(q) == (37,) and np.shape(v) == (36,) and state_ok(q, v):
+def check_state(q, v, nq: int, nv: int) -> str:
+    """"ok", or why (q, v) is no state of the robot with ``nq`` positions and ``nv``
+    velocities (the controller model's: shapes, NaN/inf, a quaternion off unit length by
+    more than QUAT_TOL, rates above MAX_RATE or a base speed above MAX_SPEED)."""
+    if np.shape(q) == (nq,) and np.shape(v) == (nv,) and state_ok(q, v):
         return "ok"     # the control step's own test (a few us); below: which one failed
-    for name, x, n in (("q", q, 37), ("v", v, 36)):
+    for name, x, n in (("q", q, nq), ("v", v, nv)):
         if np.shape(x) != (n,):
             return f"{name} has shape {np.shape(x)}, expected ({n},)"
         if not np.all(np.isfinite(x)):
@@ -130,8 +131,9 @@ def check_state(q, v) -> str:
     return "ok"
 
 
-def check_measurement(m: Measurement, walking: bool) -> str:
-    """"ok", or why the measurement is refused (``check_state``; t not finite; walking:
+def check_measurement(m: Measurement, walking: bool, nq: int, nv: int) -> str:
+    """"ok", or why the measurement is refused (``check_state`` with the sizes ``nq``,
+    ``nv``; t not finite; walking:
     sole forces missing, of the wrong shape or not finite; anything not numeric)."""
     try:
         if not np.isfinite(float(m.t)):
@@ -143,7 +145,7 @@ def check_measurement(m: Measurement, walking: bool) -> str:
                         "(left, right)")
             if not np.all(np.isfinite(np.asarray(f, float))):
                 return f"sole_force {np.asarray(f).tolist()} not finite"
-        return check_state(np.asarray(m.q, float), np.asarray(m.v, float))
+        return check_state(np.asarray(m.q, float), np.asarray(m.v, float), nq, nv)
     except (TypeError, ValueError) as e:
         return f"malformed measurement: {e}"
 
@@ -161,15 +163,17 @@ def check_barrier_poles(model, scenario, params, q, v):
 @dataclasses.dataclass(frozen=True)
 class HostRecord:
     """A good step, for logs: the control step's ``StepRecord`` (numpy), the state the QP
-    saw (v with the rigid swing-leg rates), the domain, X or None, the solver's info, the
-    wall times of the QP's preparation and of the solve (us)."""
+    saw (v with the rigid swing-leg rates), the domain, X or None, the solver's
+    ``SolveResult`` (x over the full X, NaN where failed; eq_residual of the full QP, the
+    other residuals of the reduced QP PIQP solved; None where the measurement was
+    refused), the wall times of the QP's preparation and of the solve (us)."""
 
     step: object
     q: np.ndarray
     v: np.ndarray
     domain: dict | None
     x: np.ndarray | None
-    info: dict
+    solve: object
     t_qp: float
     t_solve: float
 
@@ -207,9 +211,7 @@ class Controller:
         n_steps, settle, _ = control_step.schedule(sc, duration, settle, control_dt)
         self.walking = sc.gait is not None
         if self.walking:
-            from safewbc_jax.walking import check_speed
-
-            speed = check_speed(speed)
+            speed = sc.gait.check_speed(speed)
         if isinstance(solver, str) and solver != "piqp":
             raise ValueError(f"solver {solver!r}: 'piqp' or a PiqpSolver-like object (the JAX "
                              "solver runs batched, batch.rollout)")
@@ -235,7 +237,7 @@ class Controller:
         references' start data, compile and warm up the step; returns (and keeps in
         ``compile_s``) the seconds it took. Leaves the controller as ``reset`` does."""
         q, v = np.asarray(q, float), np.asarray(v, float)
-        reason = check_state(q, v)
+        reason = check_state(q, v, self.model.nq, self.model.nv)
         if reason != "ok":
             raise ValueError(f"start state refused: {reason}")
         t0 = time.perf_counter()
@@ -259,16 +261,18 @@ class Controller:
         """The jitted prepare (with the elimination) and conclude, on flat vectors: every
         argument and result of a step is one float64 vector (``packing.FlatTree``), not a
         pytree of some forty arrays, each of which costs microseconds at the boundary."""
-        ctx, nv, nu = self.ctx, self.model.nv, self.model.nu
+        ctx = self.ctx
         fixed = (self.params, self.start_data, self.run_values)
         state0, tally0 = control_step.init_state(ctx, q, v, np, np.float64)
         meas0 = Measurement(q, v, 0.0, np.zeros(2))
         qp0 = jax.jit(lambda *a: control_step.prepare(ctx, *a)[2])(*fixed, state0, meas0)
-        bounded = reduce.bounded_variables(qp0, nv, nu)
+        # static data of the elimination, from the QP itself (its block sizes, which of
+        # its variables outside u are bounded, whether P has cross blocks)
+        bounded = reduce.bounded_variables(qp0)
+        p_blockdiag = reduce.p_block_diagonal(qp0)
         self._nx = int(qp0.P.shape[0])
         prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
-        sol0 = control_step.Solution(np.zeros(qp0.P.shape[0]), np.int32(0), np.int32(0),
-                                     np.int32(0), np.float64(0.0))
+        sol0 = failed(self._nx)
         self._flat = {k: FlatTree(t) for k, t in (("fixed", fixed), ("state", state0),
                                                   ("tally", tally0), ("meas", meas0),
                                                   ("prep", prep0), ("sol", sol0))}
@@ -279,7 +283,7 @@ class Controller:
             state, prep, qpm = control_step.prepare(
                 ctx, *F["fixed"].unpack(fixed, jnp), F["state"].unpack(state, jnp),
                 F["meas"].unpack(meas, jnp))
-            red, rmap = reduce.eliminate_equalities(qpm, nv, nu, bounded)
+            red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
             return (F["state"].pack(state, jnp), F["prep"].pack(prep, jnp),
                     qp_packer.pack((qpm, red, rmap)))
 
@@ -336,10 +340,10 @@ class Controller:
         ``tally`` or ``metrics()`` is read. A loop that reads ``record`` after sending the
         command, as the MuJoCo loop does, keeps it off the command's path."""
         if self._pending is not None:
-            prep, sol, x, info, t_qp, t_solve = self._pending
+            prep, sol, x, res, t_qp, t_solve = self._pending
             self._pending = None
             self._tally, out = self._conclude(self._fixed, self._tally, prep, sol)
-            self._record = (out, x, info, t_qp, t_solve)
+            self._record = (out, x, res, t_qp, t_solve)
 
     @property
     def record(self) -> HostRecord | None:
@@ -350,9 +354,9 @@ class Controller:
         self.flush()
         r = self._record
         if r is not None and not isinstance(r, HostRecord):
-            packed, x, info, t_qp, t_solve = r
+            packed, x, res, t_qp, t_solve = r
             rec, q, v, domain = self._unpack_out(packed)
-            r = self._record = HostRecord(rec, q, v, domain, x, info, t_qp, t_solve)
+            r = self._record = HostRecord(rec, q, v, domain, x, res, t_qp, t_solve)
         return r
 
     def metrics(self) -> dict:
@@ -368,7 +372,7 @@ class Controller:
         self.flush()               # the last step's metrics, if nobody ran them yet
         t_step = time.perf_counter()
         self.steps += 1
-        reason = check_measurement(meas, self.walking)
+        reason = check_measurement(meas, self.walking, self.model.nq, self.model.nv)
         if reason == "ok" and self._prev_t is not None and not meas.t > self._prev_t:
             reason = f"t = {meas.t} does not advance (last step at {self._prev_t})"
         flat_meas = self._well_formed(meas)   # None: it cannot enter the step
@@ -381,41 +385,40 @@ class Controller:
                 self._tally = jnp.asarray(self._flat["tally"].pack(tally))
             else:                   # the step refuses it itself (and counts it, and records)
                 self._state, prep, _ = self._prepare(self._fixed, self._state, flat_meas)
-                sol = np.concatenate([np.full(self._nx, np.nan),
-                                      [SolveStatus.NUMERICAL, FALLBACK_NAMES.index("failed"), 0,
-                                       np.nan]])
                 self.last_times = (np.nan, np.nan)
                 if self.keep_metrics:
-                    self._pending = (prep, sol, None, {"fallback": "held", "reason": reason},
+                    self._pending = (prep, self._flat_sol(failed(self._nx)), None, None,
                                      np.nan, np.nan)
             return self._command(self._last_u, None, "held", reason, t_in)
         self._state, prep, packed = self._prepare(self._fixed, self._state, flat_meas)
         qpm, red, rmap = self._unpack_qp(packed)
         self._last_qp = qpm
         t1 = time.perf_counter()
-        z, info = self.solver.solve(red)
-        x = None if z is None else rmap.x0 + rmap.N @ z
-        if x is not None and not np.all(np.isfinite(x)):
-            x, info["fallback"], info["status"] = None, "failed", SolveStatus.NUMERICAL
-        nv, nu = self.model.nv, self.model.nu
-        eq = float(np.max(np.abs(qpm.A @ x - qpm.b))) if x is not None else np.nan
-        info["eq_residual"] = eq
+        res = self.solver.solve(red)                 # a SolveResult of the reduced QP
+        x = reduce.expand(res.x, rmap)               # all NaN where it failed
+        usable = res.fallback != FALLBACK_FAILED and bool(np.all(np.isfinite(x)))
+        if usable:
+            res = res._replace(x=x, eq_residual=float(np.max(np.abs(qpm.A @ x - qpm.b))))
+        else:   # the solver's status, or NUMERICAL where it gave a non-finite X
+            status = res.status if res.fallback == FALLBACK_FAILED else SolveStatus.NUMERICAL
+            res = failed(self._nx, status)._replace(iterations=res.iterations)
+            x = None
         t2 = time.perf_counter()
-        fb = info["fallback"]
-        usable = x is not None
-        u = control_step.hold_torque(x if usable else np.zeros(nv + nu), usable, self._last_u,
-                                     nv, nu)
-        sol = np.concatenate([np.full(qpm.P.shape[0], np.nan) if x is None else x,
-                              [info["status"], FALLBACK_NAMES.index(fb),
-                               info.get("iterations", 0), eq]])
+        u = control_step.hold_torque(res.x, usable, self._last_u, qpm.blocks)
         self.last_times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6)
         if self.keep_metrics:
-            self._pending = (prep, sol, x, info, *self.last_times)
-        self.qp_failed += fb == "failed"
-        self.fallbacks += fb == "relaxed"
+            self._pending = (prep, self._flat_sol(res), x, res, *self.last_times)
+        self.qp_failed += res.fallback == FALLBACK_FAILED
+        self.fallbacks += res.fallback == FALLBACK_RELAXED
         self._last_u = np.array(u)
         self._prev_t = meas.t
-        return self._command(self._last_u, SolveStatus(int(info["status"])), fb, "ok", t_in)
+        return self._command(self._last_u, SolveStatus(int(res.status)),
+                             fallback_name(res.fallback), "ok", t_in)
+
+    def _flat_sol(self, res) -> np.ndarray:
+        """A host SolveResult as the jitted conclude's flat vector (``FlatTree`` layout:
+        x, then each scalar field in order), without a per-field conversion."""
+        return np.concatenate([res.x, np.array(res[1:], dtype=np.float64)])
 
     def _well_formed(self, meas: Measurement):
         """The measurement as the step's flat vector (q, v, sole forces, t), or None where

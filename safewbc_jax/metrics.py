@@ -80,7 +80,7 @@ def control_accumulate(acc: ControlAcc, rec, t_rel, t_half, torque_limit, xp=np)
     NaN (not tracked in this domain) is left out of that step. The ZMP margin counts in
     the motion, where the QP was solved; a margin of -inf (no normal force under the feet,
     a robot falling) is kept."""
-    from safewbc_jax.solvers.jax_qp import FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED
+    from safewbc_jax.solvers.result import FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED
 
     ok, tau = rec.ok, rec.tau
     cnt = lambda c: xp.where(ok & c, 1, 0).astype(np.int32)  # noqa: E731

@@ -7,18 +7,47 @@ with fixed shapes, as one pytree. ``soft`` marks the rows of G that the fallback
 may relax with a heavily weighted slack (barrier and ZMP rows); the others (friction,
 unilateral contact) are never relaxed. Everything left of this pytree is pure JAX;
 the JAX solver and the PIQP path both take it.
+
+Block sizes. The controller's QP (``qp.assemble``) is over X = [q_ddot (nv), u (nu),
+lambda (nc)] and says so: ``nv``, ``nu``, ``nc`` are static data of the pytree (part of
+its tree structure, not leaves: they survive ``jit``, ``vmap`` and ``tree_map``, and a
+change of them is a new compile). They are all None for a QP without that structure (a
+generic QP, e.g. from ``solvers.solve_qp``, or a relaxed QP in [x; s]). The solvers take
+every size they need from here; nothing beside the QP tells them Digit's.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from functools import partial
+from typing import NamedTuple
 
 import jax
 
+FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
+"""The array fields, in the order of the positional constructor."""
 
-@partial(jax.tree_util.register_dataclass,
-         data_fields=["P", "q", "A", "b", "G", "h", "lb", "ub", "soft"], meta_fields=[])
+
+class Blocks(NamedTuple):
+    """The block sizes of X = [q_ddot (nv), u (nu), lambda (nc)] (nc None: the rest)."""
+
+    nv: int
+    nu: int
+    nc: int | None = None
+
+    @property
+    def u_slice(self) -> slice:
+        """The torques' entries of X."""
+        return slice(self.nv, self.nv + self.nu)
+
+    def split(self, x):
+        """X -> (q_ddot, u, lambda); works on leading batch dimensions of x."""
+        nv, nu = self.nv, self.nu
+        return x[..., :nv], x[..., nv:nv + nu], x[..., nv + nu:]
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=list(FIELDS),
+         meta_fields=["nv", "nu", "nc"])
 @dataclasses.dataclass(frozen=True)
 class QP:
     P: jax.Array   # (n, n) symmetric positive semidefinite
@@ -30,7 +59,38 @@ class QP:
     lb: jax.Array  # (n,)   -inf where unbounded
     ub: jax.Array  # (n,)   +inf where unbounded
     soft: jax.Array  # (mi,) 1.0 where the fallback may relax the row, else 0.0
+    nv: int | None = None   # X = [q_ddot (nv), u (nu), lambda (nc)]; None: no such blocks
+    nu: int | None = None
+    nc: int | None = None
 
     @property
     def n(self) -> int:
         return self.P.shape[-1]
+
+    @property
+    def has_blocks(self) -> bool:
+        """True where the QP carries the controller's block sizes."""
+        return self.nv is not None and self.nu is not None
+
+    @property
+    def blocks(self) -> Blocks:
+        """The block sizes (ValueError for a QP that carries none)."""
+        if not self.has_blocks:
+            raise ValueError("this QP carries no block sizes (nv, nu): it is not the "
+                             "controller's QP of qp.assemble")
+        return Blocks(self.nv, self.nu, self.nc)
+
+    def split(self, x):
+        """X -> (q_ddot, u, lambda) at the QP's block sizes; leading batch dimensions of x
+        allowed."""
+        return self.blocks.split(x)
+
+    def arrays(self) -> tuple:
+        """The array fields in ``FIELDS`` order."""
+        return tuple(getattr(self, f) for f in FIELDS)
+
+    def with_arrays(self, fn) -> "QP":
+        """fn applied to every array field, the block sizes kept (``tree_map``'s result,
+        without its flattening: the host path calls this every control step)."""
+        return QP(*(fn(getattr(self, f)) for f in FIELDS), nv=self.nv, nu=self.nu,
+                  nc=self.nc)

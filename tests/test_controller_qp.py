@@ -10,6 +10,7 @@ from safewbc_jax import controller, scenarios
 from safewbc_jax.params import ParamsError, apply_overrides, load_overrides, to_toml
 from safewbc_jax.solvers import reduce
 from safewbc_jax.solvers.piqp_path import PiqpSolver
+from safewbc_jax.solvers.result import FALLBACK_NONE
 from safewbc_jax.solvers.status import SolveStatus
 
 
@@ -40,16 +41,20 @@ def test_qp_shapes_and_soft_rows(arms_qp, rm):
     np.testing.assert_array_equal(qpm.soft, [0] * 14 + [1] * 17)
     np.testing.assert_allclose(qpm.P, qpm.P.T, atol=1e-12)
     assert np.all(np.linalg.eigvalsh(qpm.P) > 0)
+    # the QP carries its block sizes (static data through jit), the model's
+    assert (qpm.nv, qpm.nu, qpm.nc) == (rm.nv, rm.nu, 22) and qpm.has_blocks
+    assert reduce.has_controller_structure(qpm) and reduce.p_block_diagonal(qpm)
 
 
 def test_piqp_solution_satisfies_dynamics(arms_qp, rm):
     qpm, _ = arms_qp
-    x, info = PiqpSolver().solve(qpm)
-    assert info["status"] == SolveStatus.SOLVED and info["fallback"] == "none"
-    nv, nu = rm.nv, rm.nu
-    qdd, u, lam = x[:nv], x[nv:nv + nu], x[nv + nu:]
+    r = PiqpSolver().solve(qpm)
+    x = r.x
+    assert r.status == SolveStatus.SOLVED and r.fallback == FALLBACK_NONE
+    nv = qpm.nv
+    qdd, u, lam = qpm.split(x)
     m, h = qpm.A[:nv, :nv], -qpm.b[:nv]
-    jt = -qpm.A[:nv, nv + nu:]
+    jt = -qpm.split(qpm.A[:nv])[2]
     # M q_ddot + h = B u + J^T lambda (eq. 1), to 1e-8 relative to the force scale.
     res = m @ qdd + h - np.asarray(rm.B) @ u - jt @ lam
     assert np.abs(res).max() <= 1e-8 * max(1.0, np.abs(h).max())
@@ -60,10 +65,13 @@ def test_piqp_solution_satisfies_dynamics(arms_qp, rm):
 
 def test_reduced_qp_is_the_same_problem(arms_qp, rm):
     qpm, _ = arms_qp
-    bounded = reduce.bounded_variables(qpm, rm.nv, rm.nu)
+    bounded = reduce.bounded_variables(qpm)
     assert bounded.size == 0
-    red, rmap = reduce.eliminate_equalities_np(qpm, rm.nv, rm.nu, bounded)
-    red_j, rmap_j = jax.jit(lambda qp: reduce.eliminate_equalities(qp, rm.nv, rm.nu, bounded))(qpm)
+    red, rmap = reduce.eliminate_equalities_np(qpm, bounded)
+    red_j, rmap_j = jax.jit(lambda qp: reduce.eliminate_equalities(qp, bounded))(qpm)
+    red_b, _ = reduce.eliminate_equalities_np(qpm, bounded, p_blockdiag=True)
+    np.testing.assert_allclose(red_b.P, red.P, rtol=1e-12, atol=1e-12)
+    assert not red.has_blocks and red.A.shape == (0, rm.nu)
     np.testing.assert_allclose(rmap_j.N, rmap.N, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(red_j.P, red.P, rtol=1e-9, atol=1e-9)
     # Every u gives an X on the equality manifold.
@@ -75,10 +83,11 @@ def test_reduced_qp_is_the_same_problem(arms_qp, rm):
     # tight solver tolerances.
     tight = dict(eps_abs=1e-12, eps_rel=1e-14, eps_duality_gap_abs=1e-12,
                  eps_duality_gap_rel=1e-14)
-    z, info_r = PiqpSolver(**tight).solve(red)
-    x_full, info_f = PiqpSolver(**tight).solve(qpm)
-    assert info_r["fallback"] == info_f["fallback"] == "none"
-    x_red = rmap.x0 + rmap.N @ z
+    r_red = PiqpSolver(**tight).solve(red)
+    r_full = PiqpSolver(**tight).solve(qpm)
+    assert r_red.fallback == r_full.fallback == FALLBACK_NONE
+    x_full = r_full.x
+    x_red = reduce.expand(r_red.x, rmap)
     scale = max(1.0, np.abs(x_full).max())
     assert np.abs(x_red - x_full).max() <= 1e-6 * scale
     cost = lambda x: 0.5 * x @ qpm.P @ x + qpm.q @ x  # noqa: E731

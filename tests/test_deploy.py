@@ -12,6 +12,7 @@ import pytest
 
 from safewbc_jax import barriers, deploy, statemap
 from safewbc_jax.deploy import Controller, Measurement, MotorMap
+from safewbc_jax.solvers.result import failed
 from safewbc_jax.solvers.status import SolveStatus
 
 README = Path(__file__).resolve().parent.parent / "README.md"
@@ -81,21 +82,22 @@ def test_motor_map_refuses_figures_that_disagree_with_the_model(ctrl_mj):
         MotorMap.build(ctrl_mj, figs)
 
 
-def test_check_state_names_the_reason(stand):
+def test_check_state_names_the_reason(stand, ctrl_mj):
     q, v = stand
-    assert deploy.check_state(q, v) == "ok"
-    assert "shape" in deploy.check_state(q[:36], v)
+    sizes = (ctrl_mj.nq, ctrl_mj.nv)                   # the controller model's
+    assert deploy.check_state(q, v, *sizes) == "ok"
+    assert "shape" in deploy.check_state(q[:36], v, *sizes)
     qn = q.copy()
     qn[3:7] *= 1 + 2 * deploy.QUAT_TOL
-    assert "quaternion" in deploy.check_state(qn, v)
+    assert "quaternion" in deploy.check_state(qn, v, *sizes)
     qn[3:7] = q[3:7] * (1 + 0.5 * deploy.QUAT_TOL)     # inside the tolerance
-    assert deploy.check_state(qn, v) == "ok"
+    assert deploy.check_state(qn, v, *sizes) == "ok"
     vb = v.copy()
     vb[0] = 1.1 * deploy.MAX_SPEED
-    assert "base speed" in deploy.check_state(q, vb)
+    assert "base speed" in deploy.check_state(q, vb, *sizes)
     vb = v.copy()
     vb[20] = -0.99 * deploy.MAX_RATE
-    assert deploy.check_state(q, vb) == "ok"
+    assert deploy.check_state(q, vb, *sizes) == "ok"
 
 
 def test_controller_refuses_bad_options_and_start_states(stand):
@@ -323,7 +325,9 @@ def test_control_step_refuses_in_the_graph(squat, stand, case):
     np.testing.assert_array_equal(st1.last_v, st0.last_v)
     n = ctl.last_qp().P.shape[0]
     for x in (np.full(n, np.nan), np.ones(n)):   # a failed solve, a finite wrong answer
-        sol = np.concatenate([x, [0, 0, 3, 0.0]])
+        # as the solver's SolveResult (status SOLVED, fallback NONE), flat for the jit
+        sol = ctl._flat_sol(failed(n)._replace(x=x, status=0, fallback=0, iterations=3,
+                                               eq_residual=0.0))
         tally_flat, packed = ctl._conclude(ctl._fixed, ctl._tally, prep, sol)
         tally = F["tally"].unpack(np.asarray(tally_flat))
         rec = ctl._unpack_out(packed)[0]

@@ -37,6 +37,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,10 +49,11 @@ from safewbc_jax.qp_types import QP
 from safewbc_jax.solvers import (INFEASIBLE, MAX_ITER, SOLVED, SolveStatus, jax_qp, reduce,
                                  solve_qp)
 from safewbc_jax.solvers.piqp_path import PiqpSolver, residuals, solve_qp_piqp
+from safewbc_jax.solvers.result import SolveResult, fallback_name
 
 FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
 FIXTURE = Path(__file__).parent / "data" / "controller_qps.npz"
-NV, NU = 36, 20
+NV, NU = 36, 20       # Digit's: the fixture's QPs are the controller's (X = [q_ddot, u, lambda])
 TIGHT = {"eps_abs": 1e-12, "eps_rel": 1e-14, "eps_duality_gap_abs": 1e-12,
          "eps_duality_gap_rel": 1e-14, "max_iter": 60}
 TIGHT_NO_GAP = {**TIGHT, "check_duality_gap": False}
@@ -77,14 +80,25 @@ def _fixture_module():
     return mod
 
 
+def _sized(arrays) -> QP:
+    """The fixture's arrays as the controller's QP, with its block sizes (as qp.assemble
+    gives them)."""
+    n = np.shape(arrays[0])[-1]
+    return QP(*arrays, nv=NV, nu=NU, nc=n - NV - NU)
+
+
 def _take(data, i) -> QP:
-    return QP(*(np.asarray(data[f][i]) for f in FIELDS))
+    return _sized([np.asarray(data[f][i]) for f in FIELDS])
+
+
+def _batch(data, idx=slice(None)) -> QP:
+    return _sized([jnp.asarray(data[f][idx]) for f in FIELDS])
 
 
 def _conflict(qp: QP, soft: bool, frac: float) -> tuple[QP, int, float]:
     """(QP with row i below its least value over the torque box, i, the gap); see the
     module docstring."""
-    red, rmap = reduce.eliminate_equalities_np(qp, NV, NU)
+    red, rmap = reduce.eliminate_equalities_np(qp)
     rows = np.flatnonzero((qp.soft > 0) == soft)
     i = rows[np.argmax(np.abs(red.G[rows]).sum(axis=1))]
     g = red.G[i]
@@ -93,7 +107,7 @@ def _conflict(qp: QP, soft: bool, frac: float) -> tuple[QP, int, float]:
     gap = frac * (hi - lo)
     h = qp.h.copy()
     h[i] = qp.G[i] @ rmap.x0 + lo - gap
-    return QP(qp.P, qp.q, qp.A, qp.b, qp.G, h, qp.lb, qp.ub, qp.soft), int(i), float(gap)
+    return dataclasses.replace(qp, h=h), int(i), float(gap)
 
 
 @pytest.fixture(scope="module")
@@ -122,8 +136,7 @@ def data():
 @pytest.fixture(scope="module")
 def jax_result(data):
     """One batched JAX solve of every QP (recorded and derived)."""
-    qps = QP(*(jnp.asarray(data["qps"][f]) for f in FIELDS))
-    res = jax_qp.solve_batch(qps)
+    res = jax_qp.solve_batch(_batch(data["qps"]))
     return jax.tree_util.tree_map(np.asarray, res)
 
 
@@ -207,9 +220,10 @@ def test_infeasible_statuses_and_fallback_agree_with_piqp(data, jax_result):
     for k, (soft, row, gap) in enumerate(data["meta"]):
         j = nrec + k
         qp = _take(data["qps"], j)
-        x_p, info = piqp.solve(qp)
+        res_p = piqp.solve(qp)
+        x_p = res_p.x
         expect = "relaxed" if soft else "failed"
-        assert info["status"] == SolveStatus.INFEASIBLE and info["fallback"] == expect, k
+        assert res_p.status == SolveStatus.INFEASIBLE and fallback_name(res_p.fallback) == expect, k
         assert r.status[j] == INFEASIBLE, k                     # certified, not MAX_ITER
         assert jax_qp.FALLBACK_NAMES[r.fallback[j]] == expect, k
         if soft:
@@ -217,12 +231,12 @@ def test_infeasible_statuses_and_fallback_agree_with_piqp(data, jax_result):
             # equalities, hard rows and bounds hold; the soft row gives at least the gap
             assert r.eq_residual[j] <= 1e-8 and r.hard_violation[j] <= 1e-8
             assert r.max_slack[j] >= gap * (1 - 1e-6)
-            assert r.max_slack[j] == pytest.approx(info["max_slack"], rel=1e-5, abs=1e-8)
+            assert r.max_slack[j] == pytest.approx(res_p.max_slack, rel=1e-5, abs=1e-8)
             assert np.abs(r.x[j] - x_p).max() <= 1e-6 * max(1.0, np.abs(x_p).max()), k
         else:
             assert r.relaxed_status[j] == INFEASIBLE
             # what the caller gets for a failed step: no usable x at all
-            assert np.isnan(r.x[j]).all() and np.isnan(r.max_slack[j]) and x_p is None
+            assert np.isnan(r.x[j]).all() and np.isnan(r.max_slack[j]) and np.isnan(x_p).all()
 
 
 # ---------------------------------------------------------------- jit / vmap at user level
@@ -232,8 +246,8 @@ def test_user_level_jit_vmap_matches_solve_batch(data, jax_result):
     batched results (here 6 recorded QPs, a soft- and a hard-infeasible one)."""
     nrec = data["nrec"]
     idx = np.r_[np.linspace(0, nrec - 1, 6).astype(int), nrec, nrec + N_INFEAS]
-    qps = QP(*(jnp.asarray(data["qps"][f][idx]) for f in FIELDS))
-    fn = jax.jit(jax.vmap(lambda qp: jax_qp.solve(qp, nv=NV, nu=NU, p_blockdiag=True)))
+    qps = _batch(data["qps"], idx)
+    fn = jax.jit(jax.vmap(lambda qp: jax_qp.solve(qp, p_blockdiag=True)))
     r = jax.tree_util.tree_map(np.asarray, fn(qps))
     ref = jax_result
     np.testing.assert_array_equal(r.status, ref.status[idx])
@@ -256,7 +270,7 @@ def test_chunked_batch_matches_unchunked(data):
     nrec = data["nrec"]
     rec = np.linspace(0, nrec - 1, 18).astype(int)
     idx = np.r_[rec[:10], nrec, rec[10:], nrec + N_INFEAS]       # soft at 10, hard at 19
-    qps = QP(*(jnp.asarray(data["qps"][f][idx]) for f in FIELDS))
+    qps = _batch(data["qps"], idx)
     ref = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, chunk=None))
     r = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, chunk=8))
     assert r.x.shape == ref.x.shape == (20, data["qps"]["P"].shape[1])
@@ -288,7 +302,7 @@ def test_float32_path(data, piqp_ref):
     ds = np.flatnonzero(scen != "walk")
     idx = ds[np.linspace(0, ds.size - 1, 64).astype(int)]
     args = [data["qps"][f][idx] for f in ("P", "q", "G", "h", "A", "b", "lb", "ub")]
-    x, status = solve_qp(*args, solver="jax", dtype=jnp.float32)
+    x, status = solve_qp(*args, solver="jax", dtype=jnp.float32, nv=NV, nu=NU)
     np.testing.assert_array_equal(status, SOLVED)
     assert np.isfinite(x).all()
     xs = np.stack([piqp_ref[0][i] for i in idx])
@@ -309,7 +323,7 @@ def test_solve_qp_single_both_solvers(data, piqp_ref):
     names = ("P", "q", "G", "h", "A", "b", "lb", "ub")
     i = nrec // 3
     args = [data["qps"][f][i] for f in names]
-    x_j, st_j = solve_qp(*args, solver="jax")
+    x_j, st_j = solve_qp(*args, solver="jax", nv=NV, nu=NU)
     x_p, st_p = solve_qp(*args, solver="piqp", **REF)
     assert st_j == st_p == SolveStatus.SOLVED and isinstance(x_j, np.ndarray)
     assert np.abs(x_j - x_p).max() <= 1e-6 * np.abs(x_p).max()
@@ -317,9 +331,10 @@ def test_solve_qp_single_both_solvers(data, piqp_ref):
     for k, expect in ((0, "relaxed"), (N_INFEAS, "failed")):
         args = [data["qps"][f][nrec + k] for f in names]
         for solver in ("jax", "piqp"):
-            x, st = solve_qp(*args, solver=solver)       # plain: no solution
+            sizes = {"nv": NV, "nu": NU} if solver == "jax" else {}
+            x, st = solve_qp(*args, solver=solver, **sizes)       # plain: no solution
             assert st == SolveStatus.INFEASIBLE and x is None
-            x, st = solve_qp(*args, solver=solver, soft=soft, fallback=True)
+            x, st = solve_qp(*args, solver=solver, soft=soft, fallback=True, **sizes)
             assert st == SolveStatus.INFEASIBLE
             assert (x is None) == (expect == "failed"), (solver, expect)
     with pytest.raises(ValueError, match="unknown solver"):
@@ -370,9 +385,50 @@ def test_iteration_limit_status(data):
     """Too few iterations: MAX_ITER for the QP as posed and for its relaxation, and the
     step is reported failed (x all NaN), never a half-converged x."""
     st = jax_qp.Settings(max_iter=2, polish=False)
-    qps = QP(*(jnp.asarray(data["qps"][f][:2]) for f in FIELDS))
+    qps = _batch(data["qps"], slice(0, 2))
     r = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, settings=st))
     np.testing.assert_array_equal(r.status, MAX_ITER)
     np.testing.assert_array_equal(r.relaxed_status, MAX_ITER)
     np.testing.assert_array_equal(r.fallback, jax_qp.FALLBACK_FAILED)
     assert np.isnan(r.x).all()
+
+
+# ---------------------------------------------------------------- one seam, one answer
+
+def test_both_solvers_give_one_result_type(data, jax_result):
+    """The seam: both solvers take the QP alone (block sizes from it) and return the same
+    ``SolveResult``; on recorded QPs and on a soft- and a hard-infeasible one they agree
+    on status and fallback, and on x within the tolerance of the tests above (1e-6
+    relative to max |x|, PIQP at TIGHT; x all NaN where both fail)."""
+    nrec = data["nrec"]
+    idx = np.r_[np.linspace(0, nrec - 1, 5).astype(int), nrec, nrec + N_INFEAS]
+    tight, ref = PiqpSolver(update=False, **TIGHT_NO_GAP), PiqpSolver(update=False, **REF)
+    for j in idx:
+        qp = _take(data["qps"], j)
+        res_p = (tight if j < nrec else ref).solve(qp)
+        res_j = jax.tree_util.tree_map(lambda a: a[j], jax_result)
+        assert type(res_p) is SolveResult and type(jax_result) is SolveResult
+        assert res_p._fields == jax_qp.Result._fields
+        assert int(res_p.status) == int(res_j.status), j
+        assert int(res_p.fallback) == int(res_j.fallback), j
+        if res_p.fallback == jax_qp.FALLBACK_FAILED:
+            assert np.isnan(res_p.x).all() and np.isnan(res_j.x).all()
+        else:
+            scale = max(1.0, np.abs(res_p.x).max())
+            assert np.abs(res_j.x - res_p.x).max() <= 1e-6 * scale, j
+            assert res_p.eq_residual <= 1e-8 and res_j.eq_residual <= 1e-8
+
+
+def test_solvers_refuse_a_qp_without_block_sizes(data):
+    """The controller's path takes nv, nu from the QP: a QP without them is refused with
+    a message (solve_generic solves it), never solved at some default size."""
+    plain = QP(*(np.asarray(data["qps"][f][0]) for f in FIELDS))
+    assert not plain.has_blocks and not reduce.has_controller_structure(plain)
+    with pytest.raises(ValueError, match="block sizes"):
+        jax_qp.solve(plain)
+    with pytest.raises(ValueError, match="block sizes"):
+        reduce.eliminate_equalities_np(plain)
+    sized = _take(data["qps"], 0)
+    assert reduce.has_controller_structure(sized) and reduce.p_block_diagonal(sized)
+    qdd, u, lam = sized.split(np.arange(sized.n))
+    assert (qdd.size, u.size, lam.size) == (NV, NU, sized.n - NV - NU)

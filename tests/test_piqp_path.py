@@ -17,6 +17,8 @@ import pytest
 
 from safewbc_jax.qp_types import QP
 from safewbc_jax.solvers.piqp_path import PiqpSolver, residuals, solve_qp_piqp
+from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED,
+                                        NOT_ATTEMPTED, SolveResult)
 from safewbc_jax.solvers.relax import (relax_soft_rows, relax_soft_rows_np, split_slack,
                                        strip_slack)
 from safewbc_jax.solvers.status import SolveStatus
@@ -109,10 +111,14 @@ def test_random_qp_kkt(seed):
     qp = random_qp(np.random.default_rng(seed))
     x_ref, status = solve_qp_piqp(qp, **TIGHT)
     assert status == SolveStatus.SOLVED and x_ref is not None
-    x, info = PiqpSolver(**TIGHT).solve(qp)
-    assert info["status"] == SolveStatus.SOLVED and info["fallback"] == "none"
-    assert info["max_slack"] == 0.0 and info["iterations"] > 0 and info["solve_time_us"] > 0
-    assert info["eq_residual"] <= 1e-8 and info["ineq_violation"] <= 1e-8
+    solver = PiqpSolver(**TIGHT)
+    r = solver.solve(qp)
+    x = r.x
+    assert isinstance(r, SolveResult)
+    assert r.status == SolveStatus.SOLVED and r.fallback == FALLBACK_NONE
+    assert r.relaxed_status == NOT_ATTEMPTED and not r.polished and r.polish_iterations == 0
+    assert r.max_slack == 0.0 and r.iterations > 0 and solver.last_solve_time_us > 0
+    assert r.eq_residual <= 1e-8 and r.ineq_violation <= 1e-8
     for xx in (x_ref, x):
         eq, ineq, hard = residuals(xx, qp)
         assert eq <= 1e-8 and ineq <= 1e-8 and hard <= ineq
@@ -124,8 +130,9 @@ def test_random_qp_kkt(seed):
         assert c["stationarity"] <= 1e-8 * c["scale"]
 
     # default settings (the real-time ones): feasible to 1e-8, optimal to ~1e-6
-    x_def, info = PiqpSolver().solve(qp)
-    assert info["eq_residual"] <= 1e-8 and info["ineq_violation"] <= 1e-8
+    r = PiqpSolver().solve(qp)
+    x_def = r.x
+    assert r.eq_residual <= 1e-8 and r.ineq_violation <= 1e-8
     assert np.max(np.abs(x_def - x)) <= 1e-5
 
 
@@ -143,25 +150,28 @@ def test_dense_paths_match_qpsolvers():
     for _ in range(8):
         x_ref, status = solve_qp_piqp(qp)
         assert status == SolveStatus.SOLVED
-        x, info = resetup.solve(qp)
-        assert info["fallback"] == "none"
+        r = resetup.solve(qp)
+        x = r.x
+        assert r.fallback == FALLBACK_NONE
         assert np.max(np.abs(x - x_ref)) <= 1e-12
 
         x_tight, status = solve_qp_piqp(qp, **TIGHT)
-        x_cls, info_cls = via_qpsolvers.solve(qp)
+        x_cls = via_qpsolvers.solve(qp).x
         np.testing.assert_array_equal(x_cls, x_tight)
         for solver in (upd, upd_pre):
-            x, info = solver.solve(qp)
-            assert info["fallback"] == "none"
+            r = solver.solve(qp)
+            assert r.fallback == FALLBACK_NONE
+            x = r.x
             assert np.max(np.abs(x - x_tight)) <= 1e-7
         qp = perturbed(qp, x0, rng, 1e-3)
 
 
 def test_jax_array_input():
     qp = random_qp(np.random.default_rng(3))
-    x_np, _ = PiqpSolver().solve(qp)
-    x_j, info = PiqpSolver().solve(to_jax(qp))
-    assert info["fallback"] == "none"
+    x_np = PiqpSolver().solve(qp).x
+    r = PiqpSolver().solve(to_jax(qp))
+    x_j = r.x
+    assert r.fallback == FALLBACK_NONE
     assert isinstance(x_j, np.ndarray) and x_j.dtype == np.float64
     np.testing.assert_allclose(x_j, x_np, atol=1e-12)
     x_1, st = solve_qp_piqp(to_jax(qp))
@@ -186,29 +196,31 @@ def test_soft_conflict_relaxed(backend):
     assert qp.soft[MI - 1] == 1.0
     solver = PiqpSolver(backend)
     for _ in range(2):                                   # second call: update path
-        x, info = solver.solve(qp)
-        assert info["status"] != SolveStatus.SOLVED     # INFEASIBLE with PIQP 0.7
-        assert info["fallback"] == "relaxed"
-        assert info["relaxed_status"] == SolveStatus.SOLVED
-        assert x is not None and np.all(np.isfinite(x)) and x.shape == (N,)
+        r = solver.solve(qp)
+        x = r.x
+        assert r.status != SolveStatus.SOLVED     # INFEASIBLE with PIQP 0.7
+        assert r.fallback == FALLBACK_RELAXED
+        assert r.relaxed_status == SolveStatus.SOLVED
+        assert np.all(np.isfinite(x)) and x.shape == (N,)
         eq, ineq, hard = residuals(x, qp)
         assert eq <= 1e-8 and hard <= 1e-8               # equalities, hard rows, bounds hold
-        assert info["hard_violation"] <= 1e-8 and info["eq_residual"] <= 1e-8
+        assert r.hard_violation <= 1e-8 and r.eq_residual <= 1e-8
         # the bound wins, the soft row gives exactly the contradiction (0.5) or more
-        assert info["max_slack"] == pytest.approx(info["ineq_violation"], abs=1e-8)
-        assert info["max_slack"] >= 0.5 - 1e-8
-        assert info["iterations"] > 0
+        assert r.max_slack == pytest.approx(r.ineq_violation, abs=1e-8)
+        assert r.max_slack >= 0.5 - 1e-8
+        assert r.iterations > 0
 
 
 @pytest.mark.parametrize("backend", ["dense", "qpsolvers"])
 def test_hard_conflict_failed(backend):
     qp = _soft_conflict(random_qp(np.random.default_rng(21)), row=0, j=40)
     assert qp.soft[0] == 0.0
-    x, info = PiqpSolver(backend).solve(qp)
-    assert x is None
-    assert info["fallback"] == "failed"
-    assert info["status"] != SolveStatus.SOLVED and info["relaxed_status"] != SolveStatus.SOLVED
-    assert info["max_slack"] is None and info["eq_residual"] is None
+    r = PiqpSolver(backend).solve(qp)
+    assert np.isnan(r.x).all()                           # never a usable-looking number
+    assert r.fallback == FALLBACK_FAILED
+    assert r.status != SolveStatus.SOLVED and r.relaxed_status != SolveStatus.SOLVED
+    assert r.relaxed_status != NOT_ATTEMPTED
+    assert np.isnan(r.max_slack) and np.isnan(r.eq_residual)
     x1, st = solve_qp_piqp(qp)
     assert x1 is None and st != SolveStatus.SOLVED
 
@@ -219,19 +231,19 @@ def test_nonfinite_data_fails_cleanly():
     q[3] = np.nan
     bad = QP(P=qp.P, q=q, A=qp.A, b=qp.b, G=qp.G, h=qp.h, lb=qp.lb, ub=qp.ub, soft=qp.soft)
     solver = PiqpSolver(max_iter=50)
-    x, info = solver.solve(bad)
-    assert x is None and info["fallback"] == "failed"
+    r = solver.solve(bad)
+    assert np.isnan(r.x).all() and r.fallback == FALLBACK_FAILED
     # the solver recovers on the next good QP
-    x, info = solver.solve(qp)
-    assert info["fallback"] == "none" and np.all(np.isfinite(x))
+    r = solver.solve(qp)
+    assert r.fallback == FALLBACK_NONE and np.all(np.isfinite(r.x))
 
 
 def test_max_iter_status():
     qp = random_qp(np.random.default_rng(23))
-    x, info = PiqpSolver(max_iter=2).solve(qp)
-    assert info["status"] == SolveStatus.MAX_ITER
-    assert info["relaxed_status"] == SolveStatus.MAX_ITER
-    assert x is None and info["fallback"] == "failed"
+    r = PiqpSolver(max_iter=2).solve(qp)
+    assert r.status == SolveStatus.MAX_ITER
+    assert r.relaxed_status == SolveStatus.MAX_ITER
+    assert np.isnan(r.x).all() and r.fallback == FALLBACK_FAILED
 
 
 # ---------------------------------------------------------------- relax_soft_rows

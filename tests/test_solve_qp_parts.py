@@ -338,9 +338,9 @@ def test_controller_structure():
     np.testing.assert_allclose(x, x_star, atol=ATOL_PIQP, rtol=0)
     kw2, _ = _constructed(3, True, True, True, True)
     with pytest.raises(ValueError, match=r"structure='controller' needs the controller's QP"):
-        solve_qp(**kw2, solver="jax", structure="controller")
-    with pytest.raises(ValueError, match=r"structure='controller' needs"):
-        solve_qp(**kw, solver="jax", structure="controller")      # wrong nv, nu (36, 20)
+        solve_qp(**kw2, solver="jax", structure="controller", nv=3, nu=2)
+    with pytest.raises(ValueError, match=r"structure='controller' needs the block sizes"):
+        solve_qp(**kw, solver="jax", structure="controller")      # no nv, nu given
     with pytest.raises(ValueError, match="structure must be"):
         solve_qp(**kw2, solver="jax", structure="dense")
 

@@ -26,7 +26,7 @@ from safewbc_jax.modelinfo import (control_substeps, foot_contact_ids, loop_site
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
 from safewbc_jax.scenarios import Scenario
-from safewbc_jax.solvers.jax_qp import FALLBACK_NAMES
+from safewbc_jax.solvers.result import fallback_name
 
 
 @dataclasses.dataclass
@@ -141,8 +141,9 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
             fell = True
             break
         rec = hr.step
+        fb = fallback_name(rec.fallback) if rec.ok else "held"
         if cfg.record_qps_every and k % cfg.record_qps_every == 0:
-            recorded.append((k, ctl.last_qp(), int(rec.status), hr.info["fallback"]))
+            recorded.append((k, ctl.last_qp(), int(rec.status), fb))
         d.ctrl[motor_ids] = cmd.motor
         d.xfrc_applied[base_id, :3] = (force_at(cfg.push, rec.tau) if cfg.push is not None
                                        else 0.0)
@@ -154,7 +155,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
                                          loop_res, legs)
         log["t"].append(k * cfg.control_dt), log["tau"].append(float(rec.tau))
         log["u"].append(cmd.u), log["status"].append(int(rec.status))
-        log["fallback"].append(FALLBACK_NAMES[int(rec.fallback)] if rec.ok else "held")
+        log["fallback"].append(fb)
         log["t_qp"].append(hr.t_qp), log["t_solve"].append(hr.t_solve)
         log["eq_residual"].append(float(rec.eq_residual)), log["lambda"].append(rec.lam)
         log["zmp_margin"].append(float(rec.zmp_margin))

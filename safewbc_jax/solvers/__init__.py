@@ -32,8 +32,12 @@ Accepted parts (each combination qpsolvers accepts; tests/test_solve_qp_parts.py
   * solver="jax", generic path: A must have full row rank. As many rows as variables is
     fine (x = A^-1 b, then checked against G and the bounds); more rows than variables
     is refused (ValueError); a rank-deficient A with fewer rows gives NUMERICAL.
-  * structure="controller" on a QP without that structure (for the given nv, nu) is
-    refused (ValueError saying what the structure is).
+  * structure="controller" needs the block sizes ``nv`` and ``nu`` of X = [q_ddot (nv),
+    u (nu), lambda (nc)] as keyword arguments (no defaults: a plain QP does not say
+    them); without them, or on a QP without that structure for them, it is refused
+    (ValueError saying what the structure is). structure="auto" takes the controller's
+    path only where nv and nu are given and the QP has the structure, else the generic
+    one.
   * a shape that does not match (n from P, mi from G, me from A, B from P in a batch):
     ValueError naming the argument.
 
@@ -49,8 +53,8 @@ solver="piqp"  the PIQP path (``piqp_path``): ``PiqpSolver`` with the fallback,
                Extra keyword arguments are PIQP settings (eps_abs, max_iter, ...).
 solver="jax"   ``jax_qp`` (pure JAX, batched). ``structure="auto"`` uses the controller's
                structure (``jax_qp.solve_batch``: the equalities eliminated through the
-               actuated rows, a 20-variable QP in the torques) when the QP has it
-               (``jax_qp.has_controller_structure`` with ``nv``, ``nu``), else the generic
+               actuated rows, a QP in the nu torques) when ``nv`` and ``nu`` are given
+               and the QP has it (``reduce.has_controller_structure``), else the generic
                null-space path (``jax_qp.solve_generic_batch``, A of full row rank);
                "controller" / "generic" force one. ``dtype`` float64 (default) or float32;
                ``settings`` a ``jax_qp.Settings``. Compiled once per shape, dtype and
@@ -66,7 +70,6 @@ import numpy as np
 from safewbc_jax.solvers.status import INFEASIBLE, MAX_ITER, NUMERICAL, SOLVED, SolveStatus
 
 SOLVERS = ("jax", "piqp")
-_FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
 
 
 def _dense(v):
@@ -154,8 +157,8 @@ def _crossed_bounds(qp) -> np.ndarray:
 
 
 def _piqp(qp, fallback, settings, skip):
-    from safewbc_jax.qp_types import QP
     from safewbc_jax.solvers.piqp_path import PiqpSolver, solve_qp_piqp
+    from safewbc_jax.solvers.result import FALLBACK_FAILED
 
     nb, n = qp.P.shape[0], qp.P.shape[-1]
     xs = np.full((nb, n), np.nan)
@@ -164,10 +167,11 @@ def _piqp(qp, fallback, settings, skip):
     for i in range(nb):
         if skip[i]:
             continue
-        qpi = QP(*(getattr(qp, f)[i] for f in _FIELDS))
+        qpi = qp.with_arrays(lambda a: a[i])
         if fallback:
-            x, info = solver.solve(qpi)
-            status = info["status"]
+            res = solver.solve(qpi)
+            status = res.status
+            x = None if res.fallback == FALLBACK_FAILED else res.x
         else:
             x, status = solve_qp_piqp(qpi, **settings)
         st[i] = int(status)
@@ -179,12 +183,22 @@ def _piqp(qp, fallback, settings, skip):
 def _jax(qp, fallback, structure, nv, nu, dtype, settings):
     import jax.numpy as jnp
 
-    from safewbc_jax.qp_types import QP
     from safewbc_jax.solvers import jax_qp, reduce
+    from safewbc_jax.solvers.result import FALLBACK_FAILED
 
     if structure not in ("auto", "controller", "generic"):
         raise ValueError(f"structure must be 'auto', 'controller' or 'generic', got {structure!r}")
-    has_ctrl = structure != "generic" and jax_qp.has_controller_structure(qp, nv, nu)
+    if (nv is None) != (nu is None):
+        raise ValueError("nv and nu must be given together")
+    if structure == "controller" and nv is None:
+        raise ValueError("structure='controller' needs the block sizes of X = [q_ddot (nv), "
+                         "u (nu), lambda (nc)]: pass nv= and nu= (or use structure='auto' "
+                         "or 'generic')")
+    if nv is not None:
+        n = qp.P.shape[-1]
+        qp = dataclasses.replace(qp, nv=int(nv), nu=int(nu),
+                                 nc=int(n - nv - nu) if n >= nv + nu else None)
+    has_ctrl = structure != "generic" and reduce.has_controller_structure(qp)
     if structure == "controller" and not has_ctrl:
         raise ValueError(
             f"structure='controller' needs the controller's QP: X = [q_ddot (nv={nv}), "
@@ -193,31 +207,33 @@ def _jax(qp, fallback, structure, nv, nu, dtype, settings):
             f"n={qp.P.shape[-1]} variables and {qp.A.shape[-2]} equality rows (pass its nv "
             "and nu, or use structure='auto' or 'generic')")
     use_ctrl = structure == "controller" or (structure == "auto" and has_ctrl)
-    qpj = QP(*(jnp.asarray(getattr(qp, f)) for f in _FIELDS))
+    qpj = qp.with_arrays(jnp.asarray)
     if use_ctrl:
-        bounded = reduce.bounded_variables(QP(*(getattr(qp, f)[0] for f in _FIELDS)), nv, nu)
+        bounded = reduce.bounded_variables(qp)
         # bounds must be finite at the same places in every QP of the batch
         fin = np.isfinite(qp.lb) | np.isfinite(qp.ub)
         if not np.all(fin == fin[0]):
             raise ValueError("structure='controller' needs the finite bounds at the same "
                              "indices in every QP of the batch")
-        res = jax_qp.solve_batch(qpj, nv=nv, nu=nu, bounded=bounded, dtype=dtype,
-                                 settings=settings)
+        res = jax_qp.solve_batch(qpj, bounded=bounded, dtype=dtype, settings=settings)
     else:
-        res = jax_qp.solve_generic_batch(qpj, dtype=dtype, settings=settings)
+        res = jax_qp.solve_generic_batch(dataclasses.replace(qpj, nv=None, nu=None, nc=None),
+                                         dtype=dtype, settings=settings)
     x = np.asarray(res.x, dtype=np.float64)
     status = np.asarray(res.status, dtype=np.int32)
-    usable = (np.asarray(res.fallback) != jax_qp.FALLBACK_FAILED) if fallback else status == SOLVED
+    usable = (np.asarray(res.fallback) != FALLBACK_FAILED) if fallback else status == SOLVED
     x = np.where(usable[:, None], x, np.nan)
     return x, status
 
 
 def solve_qp(P, q, G=None, h=None, A=None, b=None, lb=None, ub=None, solver: str = "jax", *,
-             soft=None, fallback: bool = False, structure: str = "auto", nv: int = 36,
-             nu: int = 20, dtype=None, settings=None, initvals=None, **solver_settings):
+             soft=None, fallback: bool = False, structure: str = "auto", nv: int | None = None,
+             nu: int | None = None, dtype=None, settings=None, initvals=None, **solver_settings):
     """Solve one QP or a batch with ``solver`` "jax" or "piqp"; see the module docstring.
 
     ``soft``: (mi,) 1.0 on the rows of G that the fallback may relax (default none).
+    ``nv``, ``nu``: the block sizes of the controller's X (structure "controller", and
+    "auto" to consider it); None: a plain QP.
     ``initvals``: accepted for qpsolvers compatibility and ignored (neither solver warm
     starts: PIQP 0.7 has no initial-iterate input, the JAX solver starts each batch cold).
     """

@@ -30,14 +30,15 @@ The PIQP setting ``preconditioner_reuse_on_update=True`` (pass it as a keyword) 
 re-equilibration and saves ~15-20% of the solve time; with ``update=False`` every call is
 a setup and x is bit-identical to the qpsolvers path.
 
-Fallback policy (each ``PiqpSolver.solve`` returns ``(x, info)``):
+Fallback policy (``policy``: the same acceptance checks and decision as the JAX solver;
+each ``PiqpSolver.solve`` returns a ``result.SolveResult``, the JAX solver's type):
 
   (a) solve the QP; accept x when PIQP reports solved, x is finite and its residuals pass
-      ``feas_tol`` -> fallback="none";
+      ``feas_tol`` -> fallback FALLBACK_NONE;
   (b) otherwise solve ``relax_soft_rows(qp)`` (slacks on the soft rows; hard rows,
-      equalities and bounds kept) -> fallback="relaxed", info["max_slack"];
-  (c) if that fails too -> x=None, fallback="failed": the caller holds its last good
-      torque. Never returns a non-finite x and never raises on solver failure.
+      equalities and bounds kept) -> FALLBACK_RELAXED, ``max_slack``;
+  (c) if that fails too -> x all NaN, FALLBACK_FAILED: the caller holds its last good
+      torque. Never raises on solver failure.
 
 The relaxed QP is solved with the slack columns of hard rows removed (they are pinned to
 zero by lb = ub = 0 in ``relax_soft_rows``, so this is the same problem, with fewer
@@ -53,11 +54,12 @@ import numpy as np
 import piqp
 import qpsolvers
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.qp_types import FIELDS, QP
+from safewbc_jax.solvers import policy
+from safewbc_jax.solvers.policy import Attempt
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN, relax_soft_rows_np
+from safewbc_jax.solvers.result import SolveResult
 from safewbc_jax.solvers.status import SolveStatus
-
-_FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
 
 _PIQP_STATUS = {
     int(piqp.PIQP_SOLVED): SolveStatus.SOLVED,
@@ -86,31 +88,17 @@ def status_from_piqp(status) -> SolveStatus:
 
 
 def qp_to_numpy(qp: QP) -> QP:
-    """The QP with float64 numpy arrays (a no-op copy-wise for numpy float64 input)."""
-    return QP(*(np.asarray(getattr(qp, f), dtype=np.float64) for f in _FIELDS))
+    """The QP with float64 numpy arrays (a no-op copy-wise for numpy float64 input), the
+    block sizes kept."""
+    return QP(*[np.asarray(getattr(qp, f), dtype=np.float64) for f in FIELDS], nv=qp.nv,
+              nu=qp.nu, nc=qp.nc)
 
 
 def residuals(x: np.ndarray, qp: QP) -> tuple[float, float, float]:
     """(max |Ax - b|, max inequality violation over G rows and bounds, the same over hard
-    rows and bounds only) of x for a numpy QP. Violations are >= 0."""
-    eq = float(np.abs(qp.A @ x - qp.b).max()) if qp.A.shape[0] else 0.0
-    bound = max(float((qp.lb - x).max()), float((x - qp.ub).max()), 0.0)
-    ineq = hard = bound
-    if qp.G.shape[0]:
-        r = qp.G @ x - qp.h
-        ineq = max(bound, float(r.max()))
-        r_hard = r[qp.soft <= 0]
-        if r_hard.size:
-            hard = max(bound, float(r_hard.max()))
-    return eq, ineq, hard
-
-
-def _scales(qp: QP) -> tuple[float, float]:
-    """1 + the largest finite |b|, and 1 + the largest finite |h|, |lb|, |ub|."""
-    eq_scale = 1.0 + (float(np.abs(qp.b).max()) if qp.b.size else 0.0)
-    v = np.concatenate((qp.h, qp.lb, qp.ub))
-    v = np.abs(v[np.isfinite(v)])
-    return eq_scale, 1.0 + (float(v.max()) if v.size else 0.0)
+    rows and bounds only) of x for a numpy QP (``policy.residuals``). Violations are
+    >= 0."""
+    return tuple(float(r) for r in policy.residuals(x, qp, np)[:3])
 
 
 class _DenseBackend:
@@ -180,19 +168,6 @@ def _make_backend(backend: str, settings: dict[str, Any], update: bool = True):
     raise ValueError(f"unknown backend {backend!r} (expected 'dense' or 'qpsolvers')")
 
 
-def _accept(x, status: SolveStatus, qp: QP, feas_tol: float):
-    """(status, x or None, residuals) after the finiteness and residual checks."""
-    if status != SolveStatus.SOLVED:
-        return status, None, None
-    if x is None or not np.isfinite(x).all():
-        return SolveStatus.NUMERICAL, None, None
-    res = residuals(x, qp)
-    eq_scale, in_scale = _scales(qp)
-    if not (res[0] <= feas_tol * eq_scale and res[1] <= feas_tol * in_scale):
-        return SolveStatus.NUMERICAL, None, None
-    return status, x, res
-
-
 def _compact_relaxed(qp_r: QP, n: int, soft: np.ndarray) -> tuple[QP, np.ndarray]:
     """Drop the slack columns of hard rows (pinned to 0) from the relaxed QP."""
     keep = np.concatenate([np.ones(n, dtype=bool), soft > 0])
@@ -208,20 +183,15 @@ class PiqpSolver:
     """Repeated PIQP solves of same-shape QPs with the fallback policy of this module.
 
         solver = PiqpSolver()                 # backend="dense": DenseSolver setup/update
-        x, info = solver.solve(qp)            # x: (n,) float64 numpy array, or None
+        res = solver.solve(qp)                # a result.SolveResult
 
-    info (plain Python values, cheap to log):
-        status          SolveStatus of the QP as posed (after the acceptance checks)
-        fallback        "none" | "relaxed" | "failed"
-        relaxed_status  SolveStatus of the relaxed solve, or None when not attempted
-        max_slack       largest soft-row slack of the relaxed solution; 0.0 for "none",
-                        None for "failed"
-        iterations      PIQP iterations, both solves together
-        solve_time_us   wall time of the whole call (conversion, solves, checks), in us
-        eq_residual     max |A x - b| of the returned x, None when x is None
-        ineq_violation  max violation of G x <= h and of the bounds (soft rows included),
-                        None when x is None
-        hard_violation  the same over hard rows and bounds only, None when x is None
+    The result's fields are plain Python values and a float64 numpy x (all NaN where
+    fallback is FAILED), cheap to log: status (SolveStatus of the QP as posed, after the
+    acceptance checks), fallback (result.FALLBACK_*), relaxed_status (SolveStatus, or
+    result.NOT_ATTEMPTED), max_slack, iterations (PIQP's, both solves together),
+    eq_residual, ineq_violation, hard_violation (NaN where FAILED); polished False and
+    polish_iterations 0 (PIQP has no polish). ``last_solve_time_us``: the wall time of
+    the last call (conversion, solves, checks), in us.
 
     Arguments:
         backend   "dense" (default) or "qpsolvers" (reference path, a setup per call)
@@ -247,22 +217,18 @@ class PiqpSolver:
         self.relax_rho_lin = relax_rho_lin
         self._nominal = _make_backend(backend, self.settings, self.update)
         self._relaxed = _make_backend(backend, self.settings, self.update)
+        self.last_solve_time_us = float("nan")
 
     def reset(self) -> None:
         """Forget the set-up solvers (the next call does a fresh setup)."""
         self._nominal = _make_backend(self.backend, self.settings, self.update)
         self._relaxed = _make_backend(self.backend, self.settings, self.update)
 
-    def solve(self, qp: QP, initvals=None) -> tuple[np.ndarray | None, dict[str, Any]]:
+    def solve(self, qp: QP, initvals=None) -> SolveResult:
         t0 = time.perf_counter_ns()
         qp = qp_to_numpy(qp)
-        n = qp.P.shape[0]
-        info: dict[str, Any] = {
-            "status": SolveStatus.NUMERICAL, "fallback": "failed", "relaxed_status": None,
-            "max_slack": None, "iterations": 0, "solve_time_us": 0.0,
-            "eq_residual": None, "ineq_violation": None, "hard_violation": None,
-        }
-        x_out = None
+        n, mi = qp.P.shape[0], qp.G.shape[0]
+        nan_x = np.full(n, np.nan)
 
         # (a) the QP as posed
         try:
@@ -270,38 +236,34 @@ class PiqpSolver:
         except Exception:  # noqa: BLE001 - a solver exception is a failed step, not a crash
             self._nominal = _make_backend(self.backend, self.settings, self.update)
             x, status, iters = None, SolveStatus.NUMERICAL, 0
-        info["iterations"] += iters
-        status, x, res = _accept(x, status, qp, self.feas_tol)
-        info["status"] = status
-        if x is not None:
-            x_out = x
-            info["fallback"] = "none"
-            info["max_slack"] = 0.0
-        else:
-            # (b) the relaxed QP
-            rstatus = SolveStatus.NUMERICAL
-            try:
-                qp_r = relax_soft_rows_np(qp, self.relax_rho, self.relax_rho_lin)
-                qp_c, _ = _compact_relaxed(qp_r, n, qp.soft)
-                z, rstatus, iters = self._relaxed.solve(qp_c)
-                info["iterations"] += iters
-                rstatus, z, _ = _accept(z, rstatus, qp_c, self.feas_tol)
-            except Exception:  # noqa: BLE001
-                self._relaxed = _make_backend(self.backend, self.settings, self.update)
-                z = None
-            info["relaxed_status"] = rstatus
-            if z is not None:
-                x_out = np.array(z[:n])
-                s = z[n:]
-                info["fallback"] = "relaxed"
-                info["max_slack"] = float(np.max(s, initial=0.0))
-                res = residuals(x_out, qp)
-            # (c) else: x_out stays None, fallback "failed"
+        x = nan_x if x is None else x
+        status, res = policy.accept(x, qp, status, self.feas_tol, np)
+        nom = Attempt(x=x, status=status, res=res, max_slack=0.0, iterations=iters,
+                      polished=False, polish_iterations=0)
+        # accepted: nothing to relax (``finish`` without a relaxed attempt gives the same
+        # result then, relaxed_status NOT_ATTEMPTED); else (b), then (c) if that fails
+        rel = None if status == SolveStatus.SOLVED else self._solve_relaxed(qp, n, mi)
+        out = policy.finish(nom, rel, np)
+        self.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
+        return out
 
-        if x_out is not None:
-            info["eq_residual"], info["ineq_violation"], info["hard_violation"] = res
-        info["solve_time_us"] = (time.perf_counter_ns() - t0) / 1e3
-        return x_out, info
+    def _solve_relaxed(self, qp: QP, n: int, mi: int) -> Attempt:
+        """(b): the relaxed QP, its slack columns of hard rows left out."""
+        try:
+            qp_r = relax_soft_rows_np(qp, self.relax_rho, self.relax_rho_lin)
+            qp_c, keep = _compact_relaxed(qp_r, n, qp.soft)
+            z, rstatus, iters = self._relaxed.solve(qp_c)
+        except Exception:  # noqa: BLE001
+            self._relaxed = _make_backend(self.backend, self.settings, self.update)
+            z, rstatus, iters = None, SolveStatus.NUMERICAL, 0
+        if z is None:
+            z = np.full(n + int(np.count_nonzero(qp.soft > 0)), np.nan)
+        xr, s = np.array(z[:n]), z[n:]
+        slack = np.zeros(mi)
+        slack[qp.soft > 0] = s
+        rstatus, res = policy.accept(xr, qp, rstatus, self.feas_tol, np, slack=slack)
+        return Attempt(x=xr, status=rstatus, res=res, max_slack=float(np.max(s, initial=0.0)),
+                       iterations=iters, polished=False, polish_iterations=0)
 
 
 def solve_qp_piqp(qp: QP, initvals=None, **settings) -> tuple[np.ndarray | None, SolveStatus]:
@@ -317,8 +279,9 @@ def solve_qp_piqp(qp: QP, initvals=None, **settings) -> tuple[np.ndarray | None,
         x, status, _ = _QpsolversBackend({**DEFAULT_SETTINGS, **settings}).solve(qp, initvals)
     except Exception:  # noqa: BLE001
         return None, SolveStatus.NUMERICAL
-    status, x, _ = _accept(x, status, qp, 1e-6)
-    return x, status
+    x = np.full(qp.P.shape[0], np.nan) if x is None else x
+    status, _ = policy.accept(x, qp, status, 1e-6, np)
+    return (x if status == SolveStatus.SOLVED else None), status
 
 
 __all__ = ["PiqpSolver", "solve_qp_piqp", "status_from_piqp", "qp_to_numpy", "residuals",

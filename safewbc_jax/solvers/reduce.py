@@ -1,10 +1,13 @@
-"""Exact elimination of the equality rows of the controller's QP (pure JAX).
+"""Stage 1 of both solvers: the equality rows out, exactly (the controller's QP), or by
+the null-space method (any QP, JAX solver only).
 
-The seam QP over X = [q_ddot (nv), u (nu), lambda (nc)] has the equality rows
+The controller's QP over X = [q_ddot (nv), u (nu), lambda (nc)] (block sizes from the
+QP, ``qp_types.QP``) has the equality rows
 
-    M q_ddot - B u - J^T lambda = -h          (dynamics, nv rows)
-    J~ q_ddot + D lambda        = r           (chains and contacts, nc rows; a foot in
-                                               the air has J~ row 0 and D = 1: lambda = 0)
+    M q_ddot - B u - J^T lambda = -h          (dynamics, nv rows; paper eq. 1)
+    J~ q_ddot + D lambda        = r           (chains and contacts, nc rows, eqs. 2-3; a
+                                               foot in the air has J~ row 0 and D = 1:
+                                               lambda = 0)
 
 For any u they fix q_ddot and lambda: with a = M^-1 B, c = M^-1 J^T, e = M^-1 h and
 K = J~ c + D (the constraint-space inverse inertia, plus D),
@@ -12,26 +15,39 @@ K = J~ c + D (the constraint-space inverse inertia, plus D),
     lambda  = lambda0 + L u,        lambda0 = K^-1 (r + J~ e),   L = -K^-1 J~ a
     q_ddot  = (c lambda0 - e) + (a + c L) u
 
-so every feasible X is X = x0 + N u, and the QP becomes one in the nu = 20 joint torques
-alone, with their torque limits as plain bounds and the contact, ZMP and barrier rows
-G N u <= h - G x0. It is the same problem (the equalities hold exactly), solved in 20
-variables instead of 78 with no equality rows; PIQP's work per iteration grows with the
-cube of the variable count. The factorisations are one Cholesky of M (36 x 36) and one LU
-of K (22 x 22); the QP itself keeps the paper's form (no mass-matrix inverse appears in
-it) and this reduction is a solver-side step that both solvers may use.
+so every feasible X is X = x0 + N u, N = [a + c L; I; L], and the QP becomes one in the
+nu joint torques alone, with their torque limits as plain bounds and the contact, ZMP and
+barrier rows G N u <= h - G x0. It is the same problem (the equalities hold exactly),
+solved in nu variables instead of n with no equality rows; PIQP's work per iteration
+grows with the cube of the variable count. The factorisations are one Cholesky of M and
+one LU of K; the QP itself keeps the paper's form (no mass-matrix inverse appears in it)
+and this reduction is a solver-side step that both solvers use. Bounds on q_ddot or
+lambda, if any are finite, are turned into rows of G (``bounded_variables``).
 
-Bounds on q_ddot or lambda, if any are finite, are turned into rows of G (``bounded``).
+``eliminate`` is written once against ``xp`` (numpy or jax.numpy) and a set of
+factorisations (``HOST``: scipy on the host, the PIQP path's; ``JAX``: jax.scipy, the
+deployment's jitted step; ``BATCHED``: ``lapack_batched``, the JAX solver's, safe under
+vmap). N's identity block is never multiplied, and with ``p_blockdiag`` (P without
+q_ddot/u/lambda cross blocks, as the controller's; ``p_block_diagonal`` checks it) only
+P's diagonal blocks are.
+
+``reduce_generic``: a QP without that structure (JAX solver, ``jax_qp.solve_generic``):
+x = Y R^-T b + Z y with Z an orthonormal basis of null(A) from a complete QR of A' (the
+classical null-space method; A must have full row rank), finite bounds becoming rows.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
 from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers import lapack_batched as lbt
+from safewbc_jax.solvers.settings import BIG
 
 
 class Reduction(NamedTuple):
@@ -39,92 +55,209 @@ class Reduction(NamedTuple):
     N: object    # (n, nu) d X / d u
 
 
-def bounded_variables(qp: QP, nv: int, nu: int) -> np.ndarray:
-    """Indices outside u with a finite bound (static data for :func:`eliminate_equalities`;
-    empty for the controller's QP)."""
+class Factorisations(NamedTuple):
+    """chol(M) -> a factor of symmetric positive definite M; chol_solve(factor, B) ->
+    M^-1 B; solve(K, B) -> K^-1 B (LU with partial pivoting)."""
+
+    chol: object
+    chol_solve: object
+    solve: object
+
+
+def _scipy_fast():
+    """scipy.linalg's factorisations without their input checks (the inputs come from the
+    jitted assembly; a non-finite QP is caught by the acceptance checks)."""
+    import scipy.linalg as sl
+
+    return Factorisations(
+        chol=lambda M: sl.cho_factor(0.5 * (M + M.T), lower=True, check_finite=False),
+        chol_solve=lambda c, B: sl.cho_solve(c, B, check_finite=False),
+        solve=lambda K, B: sl.lu_solve(sl.lu_factor(K, check_finite=False), B,
+                                       check_finite=False))
+
+
+JAX = Factorisations(chol=lambda M: jsl.cho_factor(0.5 * (M + M.T), lower=True),
+                     chol_solve=jsl.cho_solve,
+                     solve=lambda K, B: jsl.lu_solve(jsl.lu_factor(K), B))
+# M as is (symmetric by construction; LAPACK reads its lower triangle)
+BATCHED = Factorisations(chol=lbt.cholesky_lower, chol_solve=lbt.cho_solve, solve=lbt.solve)
+
+
+def _blocks(qp: QP) -> tuple[int, int]:
+    if not qp.has_blocks:
+        raise ValueError("the controller's elimination needs the QP's block sizes nv, nu "
+                         "(a QP from qp.assemble carries them); for another QP use the "
+                         "generic path (jax_qp.solve_generic)")
+    return qp.nv, qp.nu
+
+
+def bounded_variables(qp: QP) -> np.ndarray:
+    """Indices outside u with a finite bound (static data for ``eliminate``; empty for
+    the controller's QP). Concrete arrays; one QP, or a batch whose QPs share it."""
+    nv, nu = _blocks(qp)
     lb, ub = np.asarray(qp.lb), np.asarray(qp.ub)
-    idx = np.flatnonzero(np.isfinite(lb) | np.isfinite(ub))
+    fin = np.isfinite(lb) | np.isfinite(ub)
+    idx = np.flatnonzero(fin.reshape(-1, fin.shape[-1])[0])
     return idx[(idx < nv) | (idx >= nv + nu)]
 
 
-def eliminate_equalities(qp: QP, nv: int, nu: int, bounded=np.zeros(0, int)) -> tuple[QP, Reduction]:
-    """The reduced QP in u and the map back X = x0 + N u (JAX: jit, vmap)."""
-    return _eliminate(qp, nv, nu, bounded, jnp, jsl)
-
-
-def eliminate_equalities_np(qp: QP, nv: int, nu: int, bounded=np.zeros(0, int)) -> tuple[QP, Reduction]:
-    """The same computation in numpy/scipy, for the single-robot path (a handful of
-    LAPACK calls on the host cost less than their XLA CPU dispatch)."""
-    qp = QP(*(np.asarray(getattr(qp, f)) for f in ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")))
-    return _eliminate(qp, nv, nu, bounded, np, _ScipyFast)
-
-
-class _ScipyFast:
-    """scipy.linalg's factorisations without their input checks (the inputs come from the
-    jitted assembly; a non-finite QP is caught by the solver's acceptance checks)."""
-
-    @staticmethod
-    def cho_factor(a, lower=True):
-        import scipy.linalg as sl
-
-        return sl.cho_factor(a, lower=lower, check_finite=False)
-
-    @staticmethod
-    def cho_solve(c, b):
-        import scipy.linalg as sl
-
-        return sl.cho_solve(c, b, check_finite=False)
-
-    @staticmethod
-    def lu_factor(a):
-        import scipy.linalg as sl
-
-        return sl.lu_factor(a, check_finite=False)
-
-    @staticmethod
-    def lu_solve(lu, b):
-        import scipy.linalg as sl
-
-        return sl.lu_solve(lu, b, check_finite=False)
-
-
-def _eliminate(qp: QP, nv, nu, bounded, xp, linalg):
-    """Shared body; ``xp`` is jax.numpy or numpy, ``linalg`` jax.scipy.linalg or scipy.linalg."""
-    a_mat = qp.A
-    M = a_mat[:nv, :nv]
-    B = -a_mat[:nv, nv:nv + nu]
-    Jt = -a_mat[:nv, nv + nu:]
-    Jr = a_mat[nv:, :nv]
-    D = a_mat[nv:, nv + nu:]
-    h = -qp.b[:nv]
+def eliminate(qp: QP, bounded=None, p_blockdiag: bool = False, *, xp=jnp,
+              la: Factorisations = JAX) -> tuple[QP, Reduction]:
+    """The reduced QP in u (no block sizes, no equality rows) and the map back
+    X = x0 + N u (module docstring); one QP (vmap it for a batch)."""
+    nv, nu = _blocks(qp)
+    bounded = np.zeros(0, int) if bounded is None else np.asarray(bounded, int)
+    dt = qp.P.dtype
+    A, P, G = qp.A, qp.P, qp.G
+    n = P.shape[0]
+    iq, iu, il = slice(0, nv), slice(nv, nv + nu), slice(nv + nu, n)
+    M = A[:nv, :nv]
+    Bm = -A[:nv, iu]
+    Jt = -A[:nv, il]
+    Jr = A[nv:, :nv]
+    D = A[nv:, il]
+    hq = -qp.b[:nv]
     r = qp.b[nv:]
-    chol = linalg.cho_factor(0.5 * (M + M.T), lower=True)
-    sol = linalg.cho_solve(chol, xp.concatenate([B, Jt, h[:, None]], axis=1))
+    sol = la.chol_solve(la.chol(M), xp.concatenate([Bm, Jt, hq[:, None]], axis=1))
     a, c, e = sol[:, :nu], sol[:, nu:-1], sol[:, -1]
-    K = Jr @ c + D
-    lu = linalg.lu_factor(K)
-    rhs = linalg.lu_solve(lu, xp.concatenate([(r + Jr @ e)[:, None], -(Jr @ a)], axis=1))
+    rhs = la.solve(Jr @ c + D, xp.concatenate([(r + Jr @ e)[:, None], -(Jr @ a)], axis=1))
     lam0, L = rhs[:, 0], rhs[:, 1:]
-    dtype = qp.P.dtype
-    x0 = xp.concatenate([c @ lam0 - e, xp.zeros(nu, dtype), lam0])
-    N = xp.concatenate([a + c @ L, xp.eye(nu, dtype=dtype), L], axis=0)
-    p_r = N.T @ qp.P @ N
+    Nq = a + c @ L
+    x0q = c @ lam0 - e
+
+    def n_t(v):                       # N' v for v over X
+        return Nq.T @ v[iq] + v[iu] + L.T @ v[il]
+
+    if p_blockdiag:
+        PNq, PNl = P[iq, iq] @ Nq, P[il, il] @ L
+        p_r = Nq.T @ PNq + P[iu, iu] + L.T @ PNl
+        px0 = xp.concatenate([P[iq, iq] @ x0q, xp.zeros(nu, dt), P[il, il] @ lam0])
+    else:
+        PN = P[:, iq] @ Nq + P[:, iu] + P[:, il] @ L
+        p_r = Nq.T @ PN[iq] + PN[iu] + L.T @ PN[il]
+        px0 = P[:, iq] @ x0q + P[:, il] @ lam0
     p_r = 0.5 * (p_r + p_r.T)
-    q_r = N.T @ (qp.P @ x0 + qp.q)
-    g_rows, h_rows = [qp.G @ N], [qp.h - qp.G @ x0]
+    q_r = n_t(px0 + qp.q)
+    g_rows = [G[:, iq] @ Nq + G[:, iu] + G[:, il] @ L]
+    h_rows = [qp.h - (G[:, iq] @ x0q + G[:, il] @ lam0)]
     soft = [qp.soft]
+    x0 = xp.concatenate([x0q, xp.zeros(nu, dt), lam0])
+    N = xp.concatenate([Nq, xp.eye(nu, dtype=dt), L], axis=0)
     if bounded.size:
-        e_b = xp.asarray(np.eye(x0.shape[0])[bounded], dtype)
-        g_rows += [e_b @ N, -(e_b @ N)]
-        h_rows += [qp.ub[bounded] - e_b @ x0, -(qp.lb[bounded] - e_b @ x0)]
-        soft.append(xp.zeros(2 * bounded.size, dtype))
+        Nb, xb = N[bounded], x0[bounded]
+        g_rows += [Nb, -Nb]
+        h_rows += [qp.ub[bounded] - xb, -(qp.lb[bounded] - xb)]
+        soft.append(xp.zeros(2 * bounded.size, dt))
     hh = xp.concatenate(h_rows)
-    red = QP(P=p_r, q=q_r, A=xp.zeros((0, nu), dtype), b=xp.zeros(0, dtype),
+    red = QP(P=p_r, q=q_r, A=xp.zeros((0, nu), dt), b=xp.zeros(0, dt),
              G=xp.concatenate(g_rows, axis=0), h=xp.where(xp.isfinite(hh), hh, 1e30),
-             lb=qp.lb[nv:nv + nu], ub=qp.ub[nv:nv + nu], soft=xp.concatenate(soft))
+             lb=qp.lb[iu], ub=qp.ub[iu], soft=xp.concatenate(soft))
     return red, Reduction(x0=x0, N=N)
+
+
+def eliminate_equalities(qp: QP, bounded=None, p_blockdiag: bool = False):
+    """``eliminate`` in JAX (jax.scipy factorisations; jit, not for large vmaps: the JAX
+    solver uses ``BATCHED``)."""
+    return eliminate(qp, bounded, p_blockdiag, xp=jnp, la=JAX)
+
+
+def eliminate_equalities_np(qp: QP, bounded=None, p_blockdiag: bool = False):
+    """``eliminate`` in numpy/scipy, for the single-robot path (a handful of LAPACK calls
+    on the host cost less than their XLA CPU dispatch)."""
+    qp = qp.with_arrays(lambda a: np.asarray(a))
+    return eliminate(qp, bounded, p_blockdiag, xp=np, la=_scipy_fast())
 
 
 def expand(u, red: Reduction):
     """X = x0 + N u."""
     return red.x0 + red.N @ u
+
+
+def has_controller_structure(qp: QP) -> bool:
+    """Host-side check (concrete arrays, one QP or a batch) that the controller's
+    elimination applies: block sizes carried, n = nv + nu + nc with nv + nc equality
+    rows, the constraint rows free of u, and symmetric mass-matrix blocks."""
+    if not qp.has_blocks:
+        return False
+    nv, nu = qp.nv, qp.nu
+    P, A = np.asarray(qp.P), np.asarray(qp.A)
+    n, me = P.shape[-1], A.shape[-2]
+    nc = n - nv - nu
+    if nc < 0 or me != nv + nc or A.shape[-1] != n or (qp.nc is not None and qp.nc != nc):
+        return False
+    if np.any(A[..., nv:, nv:nv + nu] != 0):
+        return False
+    M = A[..., :nv, :nv]
+    return bool(np.allclose(M, np.swapaxes(M, -1, -2), rtol=1e-10, atol=1e-12))
+
+
+def p_block_diagonal(qp: QP) -> bool:
+    """Host-side check (concrete P, one QP or a batch) that P has no cross terms between
+    the q_ddot, u and lambda blocks (False for a QP without block sizes)."""
+    if not qp.has_blocks:
+        return False
+    P = np.asarray(qp.P)
+    nv, nu = qp.nv, qp.nu
+    s = [slice(0, nv), slice(nv, nv + nu), slice(nv + nu, P.shape[-1])]
+    return not any(np.any(P[..., s[i], s[j]]) for i in range(3) for j in range(3) if i != j)
+
+
+# ------------------------------------------------------------------ any QP (JAX solver)
+
+def _nullspace(qp: QP):
+    """x = xp + Z y with Z an orthonormal basis of null(A) (complete QR of A')."""
+    me = qp.A.shape[0]
+    Q, R = jnp.linalg.qr(qp.A.T, mode="complete")
+    R1 = R[:me, :]
+    Y, Z = Q[:, :me], Q[:, me:]
+    w = jsl.solve_triangular(R1, qp.b, trans="T", lower=False)
+    xp_ = Y @ w
+    d = jnp.abs(jnp.diag(R1))
+    rank_ok = jnp.min(d) > 1e3 * jnp.finfo(qp.P.dtype).eps * jnp.maximum(jnp.max(d), 1.0)
+    return xp_, Z, rank_ok
+
+
+def reduce_generic(qp: QP) -> tuple[QP, Reduction, jax.Array]:
+    """(reduced QP, Reduction, rank ok) of a general QP, in JAX: no equalities -> the QP
+    itself (bounds as bounds, infinite entries as +-1e30); else the null-space method,
+    finite bounds becoming hard rows. A with as many rows as variables (full rank: x
+    fixed by A x = b, null(A) = {0}) gets a reduced problem in one dummy variable y that
+    x does not depend on (Z = 0, cost y^2/2), so that the rows and bounds are still
+    checked at x = xp (their rows 0 y <= h - G xp). More rows than variables cannot be
+    of full row rank: ValueError."""
+    dtype = qp.P.dtype
+    n, me = qp.P.shape[0], qp.A.shape[0]
+    if me > n:
+        raise ValueError(f"the generic JAX path needs A of full row rank: A has {me} rows "
+                         f"for {n} variables (remove the redundant equalities, or use "
+                         "solver='piqp')")
+    fin = lambda v, big: jnp.where(jnp.isfinite(v), v, big)  # noqa: E731
+    if me == 0:
+        red = QP(P=qp.P, q=qp.q, A=qp.A, b=qp.b, G=qp.G, h=fin(qp.h, 1e30),
+                 lb=fin(qp.lb, -1e30), ub=fin(qp.ub, 1e30), soft=qp.soft)
+        return red, Reduction(jnp.zeros(n, dtype), jnp.eye(n, dtype=dtype)), jnp.ones((), bool)
+    xp_, Z, rank_ok = _nullspace(qp)
+    nz = n - me
+    Pz = Z.T @ qp.P @ Z
+    Pz = 0.5 * (Pz + Pz.T)
+    qz = Z.T @ (qp.P @ xp_ + qp.q)
+    if nz == 0:                       # x = xp: a dummy variable, absent from x
+        nz = 1
+        Z = jnp.zeros((n, 1), dtype)
+        Pz = jnp.ones((1, 1), dtype)
+        qz = jnp.zeros(1, dtype)
+    lbf = qp.lb > -BIG
+    ubf = qp.ub < BIG
+    Gz = jnp.concatenate([qp.G @ Z, Z, -Z], axis=0)
+    hz = jnp.concatenate([qp.h - qp.G @ xp_, jnp.where(ubf, qp.ub - xp_, 1e30),
+                          jnp.where(lbf, xp_ - qp.lb, 1e30)])
+    inf = jnp.full(nz, 1e30, dtype)
+    red = QP(P=Pz, q=qz, A=jnp.zeros((0, nz), dtype), b=jnp.zeros(0, dtype), G=Gz,
+             h=fin(hz, 1e30), lb=-inf, ub=inf,
+             soft=jnp.concatenate([qp.soft, jnp.zeros(2 * n, dtype)]))
+    return red, Reduction(xp_, Z), rank_ok
+
+
+__all__ = ["Reduction", "Factorisations", "JAX", "BATCHED", "bounded_variables", "eliminate",
+           "eliminate_equalities", "eliminate_equalities_np", "expand",
+           "has_controller_structure", "p_block_diagonal", "reduce_generic"]

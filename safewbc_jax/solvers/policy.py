@@ -1,0 +1,165 @@
+"""What both solvers decide alike: whether a solved point is accepted, and the fallback.
+
+Acceptance. A solver's "solved" is taken only when x is finite and its full-space
+residuals pass ``feas_tol``:
+
+    max |A x - b|                          <= feas_tol (1 + max |b|)
+    max violation of G x <= h and bounds   <= feas_tol (1 + max finite |h|, |lb|, |ub|)
+
+(entries of h and of the bounds at or above ``BIG`` in size count as absent), else the
+status becomes NUMERICAL. For the relaxed QP the rows checked are G x - s <= h, s >= 0,
+with the slacks s of its solution.
+
+Fallback policy (the paper's QP may be infeasible when a barrier and the contact rows
+conflict; the loop must still command something):
+
+  (a) solve the QP as posed; accepted -> fallback NONE, x its solution;
+  (b) otherwise solve the relaxed QP (``relax.relax_soft_rows``: a slack on each soft
+      row, hard rows, equalities and bounds kept); accepted -> RELAXED, x its solution,
+      ``max_slack`` its largest slack;
+  (c) otherwise FAILED: x all NaN, and the caller holds its last good torque.
+
+``decide`` is that rule and ``finish`` builds the ``SolveResult`` from the two attempts;
+the JAX solver runs them traced (``xp`` = jax.numpy: selections by ``where``, batches by
+vmap), the PIQP path on the host (``xp`` = numpy, one QP: plain Python selections).
+Everything here is written once for either ``xp``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED,
+                                        NOT_ATTEMPTED, SolveResult)
+from safewbc_jax.solvers.settings import BIG
+from safewbc_jax.solvers.status import NUMERICAL, SOLVED
+
+
+def _select(xp):
+    """where(cond, a, b) for a scalar cond: traced for jax.numpy, a Python branch on the
+    host (one QP; cheaper than numpy's where on 0-d arrays)."""
+    return jnp.where if xp is jnp else (lambda c, a, b: a if c else b)
+
+
+def residuals(x, qp: QP, xp=np, slack=None):
+    """(max |Ax - b|, max violation over G rows and bounds, the same over hard rows only,
+    and the violation of the relaxed QP's rows G x - s <= h, s >= 0 when ``slack`` s is
+    given, else the second again). Violations are >= 0. An absent row or bound (h, ub
+    +inf or >= BIG, lb likewise) can only contribute a negative value to a maximum that
+    starts at 0, so no mask is needed for it (and for a finite x none is applied)."""
+    eq = xp.abs(qp.A @ x - qp.b).max(initial=0.0)
+    bnd = xp.maximum((qp.lb - x).max(initial=0.0), (x - qp.ub).max(initial=0.0))
+    gx = qp.G @ x - qp.h
+    ineq = xp.maximum(bnd, gx.max(initial=0.0))
+    hard = xp.maximum(bnd, xp.where(qp.soft > 0, -xp.inf, gx).max(initial=0.0))
+    if slack is None:
+        return eq, ineq, hard, ineq
+    rel = xp.maximum(bnd, (gx - slack).max(initial=0.0))
+    rel = xp.maximum(rel, (-slack).max(initial=0.0))
+    return eq, ineq, hard, rel
+
+
+def scales(qp: QP, xp=np):
+    """(1 + max |b|, 1 + the largest |h|, |lb|, |ub| below BIG): the acceptance's scales."""
+    eq_scale = 1.0 + xp.abs(qp.b).max(initial=0.0)
+    v = xp.abs(xp.concatenate([qp.h, qp.lb, qp.ub]))
+    in_scale = 1.0 + xp.where(v < BIG, v, 0.0).max(initial=0.0)
+    return eq_scale, in_scale
+
+
+def accept(x, qp: QP, status, feas_tol, xp=np, slack=None):
+    """SOLVED stays SOLVED only where x is finite and its residuals pass (module
+    docstring); ``slack`` (on G's rows) checks the relaxed QP's rows instead of G's.
+    Returns (status, (eq, ineq, hard)); on the host, where the solver did not report
+    SOLVED, the residuals are not computed (NaN: ``finish`` never uses them then)."""
+    if xp is not jnp and status != SOLVED:
+        return status, (float("nan"),) * 3
+    eq_scale, in_scale = scales(qp, xp)
+    eq, ineq, hard, chk = residuals(x, qp, xp, slack)
+    good = xp.all(xp.isfinite(x)) & (eq <= feas_tol * eq_scale) & (chk <= feas_tol * in_scale)
+    if xp is jnp:
+        status = jnp.where((status == SOLVED) & ~good, NUMERICAL, status).astype(jnp.int32)
+    elif status == SOLVED and not good:
+        status = NUMERICAL
+    return status, (eq, ineq, hard)
+
+
+class Attempt(NamedTuple):
+    """One solve of the policy (the QP as posed, or the relaxed QP): x over the QP's
+    variables, its status after ``accept``, the residuals (eq, ineq, hard) ``accept``
+    returned, the largest soft-row slack (0 for the QP as posed), iterations, and the
+    JAX solver's polish flag and KKT-solve count (False, 0 on PIQP)."""
+
+    x: Any
+    status: Any
+    res: tuple
+    max_slack: Any
+    iterations: Any
+    polished: Any
+    polish_iterations: Any
+
+
+def skipped(x_like, xp=np) -> Attempt:
+    """The relaxed attempt where no QP needed it (never selected by ``finish``)."""
+    nan = xp.full((), xp.nan, x_like.dtype)
+    zero = xp.zeros((), jnp.int32) if xp is jnp else 0
+    return Attempt(x=xp.full_like(x_like, xp.nan), status=xp.full((), NUMERICAL, jnp.int32)
+                   if xp is jnp else NUMERICAL, res=(nan, nan, nan), max_slack=nan,
+                   iterations=zero, polished=xp.zeros((), bool) if xp is jnp else False,
+                   polish_iterations=zero)
+
+
+def decide(nominal_ok, relaxed_ok, xp=np):
+    """The fallback code: NONE where the QP as posed was accepted, else RELAXED where the
+    relaxed QP was, else FAILED."""
+    sel = _select(xp)
+    return sel(nominal_ok, FALLBACK_NONE, sel(relaxed_ok, FALLBACK_RELAXED, FALLBACK_FAILED))
+
+
+def finish(nom: Attempt, rel: Attempt | None, xp=np) -> SolveResult:
+    """The policy's outcome as a SolveResult: x of the QP as posed, else of the relaxed
+    QP, else all NaN. ``rel`` None: no fallback (FAILED wherever the QP as posed fails,
+    relaxed_status NOT_ATTEMPTED)."""
+    sel = _select(xp)
+    jx = xp is jnp
+    ok = nom.status == SOLVED
+    fb = decide(ok, False if rel is None else rel.status == SOLVED, xp)
+    relaxed = fb == FALLBACK_RELAXED
+    need = fb != FALLBACK_NONE
+    nan_x = xp.full_like(nom.x, xp.nan)
+    nan = xp.full((), xp.nan, nom.x.dtype) if jx else float("nan")
+    zero = xp.zeros((), nom.x.dtype) if jx else 0.0
+    if rel is None:
+        rstatus = xp.full((), NOT_ATTEMPTED, jnp.int32) if jx else NOT_ATTEMPTED
+        x_out = sel(ok, nom.x, nan_x)
+        max_slack = sel(ok, zero, nan)
+        iters, kp = nom.iterations, nom.polish_iterations
+        polished = ok & nom.polished if jx else bool(ok and nom.polished)
+        eq, ineq, hard = (sel(ok, a, nan) for a in nom.res)
+    else:
+        rstatus = sel(need, rel.status, NOT_ATTEMPTED)
+        x_out = sel(ok, nom.x, sel(relaxed, rel.x, nan_x))
+        max_slack = sel(ok, zero, sel(relaxed, rel.max_slack, nan))
+        iters = nom.iterations + sel(need, rel.iterations, 0)
+        kp = nom.polish_iterations + sel(need, rel.polish_iterations, 0)
+        polished = sel(ok, nom.polished, relaxed & rel.polished)
+        eq, ineq, hard = (sel(ok, a, sel(relaxed, b, nan)) for a, b in zip(nom.res, rel.res))
+    if jx:
+        i32 = jnp.int32
+        return SolveResult(x=x_out, status=jnp.asarray(nom.status).astype(i32),
+                           fallback=fb.astype(i32), relaxed_status=jnp.asarray(rstatus).astype(i32),
+                           iterations=jnp.asarray(iters).astype(i32),
+                           max_slack=max_slack.astype(nom.x.dtype), eq_residual=eq,
+                           ineq_violation=ineq, hard_violation=hard, polished=polished,
+                           polish_iterations=jnp.asarray(kp).astype(i32))
+    return SolveResult(x=x_out, status=nom.status, fallback=fb, relaxed_status=rstatus,
+                       iterations=int(iters), max_slack=float(max_slack), eq_residual=float(eq),
+                       ineq_violation=float(ineq), hard_violation=float(hard),
+                       polished=bool(polished), polish_iterations=int(kp))
+
+
+__all__ = ["residuals", "scales", "accept", "Attempt", "skipped", "decide", "finish"]
