@@ -24,7 +24,7 @@ SPEED = f"{ROOT / 'examples' / 'squat_com_velocity.py'}:COM_SPEED"
 def test_load_from_a_file_and_its_errors(tmp_path):
     s = safesets.load(LEAN)
     assert isinstance(s, SafeSet) and s.name == "torso_lean" and s.relative_degree == 2
-    assert s.threshold == 0.9 and s.poles == (5.0, 5.0)
+    assert s.threshold == 0.9 and s.poles == (10.0, 10.0)
     assert safesets.load(SPEED).relative_degree == 1
     with pytest.raises(SafeSetError, match="expected FILE.py:NAME"):
         safesets.load("examples/bow_torso_lean.py")
@@ -48,7 +48,7 @@ def test_a_safe_set_is_one_object_in_the_scenario_and_its_params():
     sc = scenarios.get_scenario("bow", True, (LEAN,))
     assert [b.name for b in sc.barriers] == ["torso_lean"]
     p = sc.default_params()
-    np.testing.assert_array_equal(p.poles["torso_lean"], [5.0, 5.0])
+    np.testing.assert_array_equal(p.poles["torso_lean"], [10.0, 10.0])
     assert float(p.threshold["torso_lean"]) == 0.9
     p2 = apply_overrides(p, {"poles": {"torso_lean": [8.0, 9.0]},
                              "threshold": {"torso_lean": 0.8}})
