@@ -139,6 +139,13 @@ class Context:
         # are traced too
         object.__setattr__(self, "weight",
                            float(-self.model.gravity[2] * self.model.total_mass))
+        # every safe set's h, traced once (nothing compiles): a user's h of the wrong shape
+        # or one that fails is refused here, naming it, before the step compiles
+        q0 = np.zeros(self.model.nq)
+        q0[3] = 1.0
+        for s in self.scenario.safe_sets:
+            s.check(self.model, jnp.asarray(q0), jnp.zeros(self.model.nv),
+                    self.scenario.theorem_domain(self.model, s, q0))
 
 
 def schedule(scenario, duration=None, settle=None, control_dt=1e-3, what=""):

@@ -48,7 +48,10 @@ class ControllerParams:
 
 def make_params(outputs: dict, barriers: dict, **scalars) -> ControllerParams:
     """outputs: name -> (dim, kp, kd, weight) with scalar or per-dim gains; barriers:
-    name -> (poles, threshold)."""
+    name -> (poles, threshold). Float64: needs ``safewbc_jax.enable_x64()``."""
+    from safewbc_jax import require_x64
+
+    require_x64("ControllerParams (params.make_params)")
     f = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
     kp, kd, w = {}, {}, {}
     for name, (dim, p, d, wt) in outputs.items():

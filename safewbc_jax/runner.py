@@ -114,6 +114,8 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     the user's safe sets to add, "FILE.py:NAME" references (``safesets.load``) or SafeSets."""
     from safewbc_jax.sim.mujoco_loop import RunConfig, run
 
+    if isinstance(safe_sets, str):
+        safe_sets = (safe_sets,)
     scenario = scenarios.get_scenario(name, barrier, tuple(safe_sets))
     opts = check_run_options(name, scenario, duration=duration, settle=settle, speed=speed,
                              push=push, push_at=push_at, push_for=push_for)

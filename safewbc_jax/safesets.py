@@ -29,11 +29,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib.util
+import inspect
 import math
 import re
 import sys
 from pathlib import Path
 from typing import Callable
+
+import numpy as np
 
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
@@ -66,11 +69,23 @@ class SafeSet:
             raise SafeSetError(f"{where}: relative_degree must be 1 (h(model, q, v, threshold, "
                                f"domain)) or 2 (h(model, q, threshold, domain)), got "
                                f"{self.relative_degree!r}")
-        poles = tuple(self.poles) if isinstance(self.poles, (tuple, list)) else (self.poles,)
+        want = ("h(model, q, threshold, domain)" if self.relative_degree == 2 else
+                "h(model, q, v, threshold, domain)")
+        try:
+            inspect.signature(self.h).bind(*range(4 if self.relative_degree == 2 else 5))
+        except TypeError:
+            raise SafeSetError(f"{where}: relative degree {self.relative_degree} needs {want}; "
+                               f"h has the signature {inspect.signature(self.h)}") from None
+        except ValueError:   # a builtin without a signature: checked when evaluated
+            pass
+        poles = tuple(float(p) if isinstance(p, (int, float, np.floating, np.integer))
+                      and not isinstance(p, (bool, np.bool_)) else p
+                      for p in np.atleast_1d(np.asarray(self.poles, dtype=object)).tolist())
         if len(poles) != self.relative_degree:
             raise SafeSetError(f"{where}: {len(poles)} poles for relative degree "
                                f"{self.relative_degree} (one pole per derivative)")
-        if not all(isinstance(p, (int, float)) and math.isfinite(p) and p > 0 for p in poles):
+        if not all(isinstance(p, (int, float)) and not isinstance(p, bool) and math.isfinite(p)
+                   and p > 0 for p in poles):
             raise SafeSetError(f"{where}: poles {poles!r} must be finite numbers > 0 "
                                "(Theorem 1)")
         if not (isinstance(self.threshold, (int, float)) and math.isfinite(self.threshold)):
@@ -88,6 +103,21 @@ class SafeSet:
         """h at (q, v)."""
         hf = self.h_fn(model, threshold, domain)
         return hf(q) if self.relative_degree == 2 else hf(q, v)
+
+    def check(self, model, q, v, domain=None) -> None:
+        """SafeSetError unless h evaluates to one number at (q, v) (by ``jax.eval_shape``:
+        nothing runs or compiles): what the loops call before compiling the step."""
+        import jax
+
+        try:
+            out = jax.eval_shape(lambda q, v: self.value(model, q, v, self.threshold, domain),
+                                 q, v)
+        except Exception as e:  # noqa: BLE001 - the user's h: say which one failed, and how
+            raise SafeSetError(f"safe set {self.name!r}: evaluating h failed: "
+                               f"{type(e).__name__}: {e}") from e
+        if getattr(out, "shape", None) != ():
+            raise SafeSetError(f"safe set {self.name!r}: h must return one number (shape ()), "
+                               f"it returns shape {getattr(out, 'shape', type(out).__name__)}")
 
     def is_active(self, domain):
         return 1.0 if self.active is None else self.active(domain)

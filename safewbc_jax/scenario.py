@@ -52,7 +52,8 @@ class Scenario:
                             ("safe set", [s.name for s in self.safe_sets])):
             dup = sorted({n for n in names if names.count(n) > 1})
             if dup:
-                raise SafeSetError(f"scenario {self.name!r}: {kind} names repeated: {dup}")
+                err = SafeSetError if kind == "safe set" else ValueError
+                raise err(f"scenario {self.name!r}: {kind} names repeated: {dup}")
 
     # -- what the controller iterates over
     @property
@@ -99,12 +100,15 @@ class Scenario:
     def theorem_domain(self, model, safe_set: SafeSet, q):
         """The domain where Theorem 1 is checked for ``safe_set`` from the start pose q:
         its own ``check_domain``; else, for a barrier active only in some domains of a
-        gait, where the gait's first step begins; else the start state's (None)."""
+        gait, where the gait's first step begins; else the start state's (a gait's
+        standing domain; None without a gait)."""
         if safe_set.check_domain is not None:
             return safe_set.check_domain(model, q)
-        if safe_set.active is not None and self.gait is not None:
+        if self.gait is None:
+            return None
+        if safe_set.active is not None:
             return self.gait.first_domain(model, q)
-        return None
+        return self.gait.start_domain(model, q)
 
     # -- references
     def desired_at(self, model, tau, start, q, v, domain):

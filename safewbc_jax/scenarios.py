@@ -96,6 +96,8 @@ def get_scenario(name: str, barrier: bool = True, safe_sets=()) -> Scenario:
     else:
         raise ValueError(f"unknown scenario {name!r}; available: "
                          f"{', '.join(list(SCENARIOS) + list(WALKING))}")
+    if isinstance(safe_sets, (str, SafeSet)):
+        safe_sets = (safe_sets,)
     extra = tuple(load(s) if isinstance(s, str) else s for s in safe_sets)
     taken = {s.name for s in sc.safe_sets}
     for s in extra:

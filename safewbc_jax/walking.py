@@ -477,5 +477,10 @@ class AlipGait:
     def first_domain(self, model, q):
         return first_step_domain(model, q)
 
+    def start_domain(self, model, q):
+        """The domain at the start: standing (both feet), the default commands."""
+        return gait_domain(GaitState.standing(), np.float64(0.0), np.float64(0.2),
+                           np.float64(self.step_width))
+
     def check_speed(self, speed, option="speed"):
         return check_speed(speed, option)

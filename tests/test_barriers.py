@@ -344,9 +344,10 @@ def test_fist_barrier_row_against_finite_differences(ctrl_mj, rm, fist, robot_st
         assert abs(float(row.drift) - jdot_v) <= 1e-6 * scale, (float(row.drift), jdot_v)
         b_ref = -_k_ref(poles) @ np.asarray(row.eta) - jdot_v
         assert float(row.b) == pytest.approx(b_ref, abs=1e-6 * scale)
-        # and the algebraic form (eq. 28 from its terms) gives the same row
-        a_alg, b_alg = bf.aecbf_inequality(row.eta, row.drift, row.a_row,
-                                           bf.k_alpha_from_poles(poles))
+        # and the algebraic form (eq. 28 from the kinematic terms: eta = [h, J_h v]) gives
+        # the same row
+        a_alg, b_alg = _row_from_terms(row.eta[0], row.a_row, row.drift, jnp.asarray(v0),
+                                       bf.k_alpha_from_poles(poles))
         np.testing.assert_allclose(a_alg, row.a_row, atol=0)
         assert float(b_alg) == pytest.approx(float(row.b), rel=1e-13, abs=1e-13)
 
@@ -451,5 +452,16 @@ def test_safe_set_argument_validation(rm):
         SafeSet("left-fist", h2)
     with pytest.raises(SafeSetError, match="threshold"):
         SafeSet("bad", h2, threshold=float("nan"))
+    with pytest.raises(SafeSetError, match=r"needs h\(model, q, v, threshold, domain\)"):
+        SafeSet("bad", h2, relative_degree=1, poles=(1.0,))
+    np.testing.assert_array_equal(SafeSet("ok", h2, poles=np.array([2.0, 3.0])).poles, (2.0, 3.0))
+    # h evaluated (traced, nothing compiled) before a loop compiles: one number, or refused
+    q0 = jnp.zeros(rm.nq).at[3].set(1.0)
+    SafeSet("ok", h2).check(rm, q0, jnp.zeros(rm.nv))
+    with pytest.raises(SafeSetError, match=r"'vec': h must return one number .*\(2,\)"):
+        SafeSet("vec", lambda m, q, c, d=None: q[:2] - c).check(rm, q0, jnp.zeros(rm.nv))
+    with pytest.raises(SafeSetError, match="'boom': evaluating h failed: KeyError"):
+        SafeSet("boom", lambda m, q, c, d=None: d["stance"] * q[0]).check(rm, q0, jnp.zeros(rm.nv),
+                                                                         {})
     with pytest.raises(ValueError, match="poles"):
         bf.aecbf_row(lambda q: q[0], jnp.zeros(rm.nq), jnp.zeros(rm.nv), jnp.ones(1), 2)

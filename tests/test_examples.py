@@ -1,9 +1,10 @@
 """The two examples/ safe sets, loaded from their files as a user would, in the MuJoCo
 closed loop (the deployment controller, PIQP).
 
-Each runs twice on one compiled controller: with the safe set's own threshold, and with a
-threshold so far away that the A-ECBF row never binds (the control without the barrier;
-thresholds are parameters, so no second compile)."""
+Each runs twice: with the safe set's own threshold, and with a threshold so far away that
+the A-ECBF row never binds (the control without the barrier). Thresholds are parameters,
+so the second run's program is the first one's and comes from the persistent compilation
+cache that conftest sets up (it still traces)."""
 
 from pathlib import Path
 

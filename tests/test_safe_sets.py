@@ -66,9 +66,10 @@ def test_a_safe_set_is_one_object_in_the_scenario_and_its_params():
 def test_run_refuses_a_bad_safe_set_before_compiling(capsys):
     from safewbc_jax.cli import main
 
-    assert main(["run", "bow", "--safe-set", "examples/none.py:X"]) == 2
+    # --cpu -1: no pinning (else the CLI pins this whole test process to one core)
+    assert main(["run", "bow", "--cpu", "-1", "--safe-set", "examples/none.py:X"]) == 2
     assert "examples/none.py does not exist" in capsys.readouterr().err
-    assert main(["run", "bow", "--safe-set", LEAN.replace("TORSO_LEAN", "lean")]) == 2
+    assert main(["run", "bow", "--cpu", "-1", "--safe-set", LEAN.replace("TORSO_LEAN", "lean")]) == 2
     assert "has no 'lean'" in capsys.readouterr().err
 
 
@@ -169,6 +170,7 @@ def test_a_new_task_is_one_object_and_adds_exactly_its_cost(rm, ctrl_mj, stand):
     np.testing.assert_allclose(np.asarray(qb.q - qa.q)[: rm.nv],
                                2 * w * np.asarray(jy.T @ (jdv - ystar)), rtol=0, atol=1e-9)
     assert float(jnp.abs(qb.P - qa.P)[rm.nv:].max()) == 0.0
+    assert float(jnp.abs(qb.P - qa.P)[:rm.nv, rm.nv:].max()) == 0.0
     for f in ("A", "b", "G", "h", "lb", "ub"):
         np.testing.assert_array_equal(np.asarray(getattr(qa, f)), np.asarray(getattr(qb, f)))
 
@@ -180,5 +182,5 @@ def test_task_and_scenario_validation():
     with pytest.raises(ValueError, match="exactly one of reference"):
         Task(o, reference=lambda t, s: 0, planned=lambda *a: 0)
     t = Task(o, reference=lambda t, s: jnp.zeros(3))
-    with pytest.raises(SafeSetError, match="names repeated"):
+    with pytest.raises(ValueError, match="task names repeated"):
         Scenario("x", (t, t))

@@ -45,6 +45,7 @@ from safewbc_jax.mjx_import import import_mjx
 from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
+from safewbc_jax import safesets
 from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario
 from safewbc_jax.sim.mujoco_loop import load_at_stand
 from safewbc_jax.solvers import jax_qp
@@ -154,11 +155,16 @@ def plant(cfg: BatchConfig) -> Plant:
     """The host-side constants of a config (validated first)."""
     _check_config(cfg)
     _schedule(get_scenario(cfg.scenario, cfg.barrier, cfg.safe_sets), cfg)  # before the plant
-    return _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt), tuple(cfg.safe_sets))
+    # the cache key names each user's file by its resolved path and content: an edited
+    # file gets a new plant, and "a.py:X" and "./a.py:X" share one
+    refs = tuple(f"{p.resolve()}:{n}" for p, n in map(safesets.split_ref, cfg.safe_sets))
+    return _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt), refs,
+                  tuple(safesets.file_digest(r) for r in refs))
 
 
 @functools.lru_cache(maxsize=8)
-def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = ()) -> Plant:
+def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = (),
+           digests: tuple = ()) -> Plant:
     cfg = BatchConfig(scenario=scenario, barrier=barrier, control_dt=control_dt,
                       safe_sets=safe_sets)
     mjx = import_mjx()

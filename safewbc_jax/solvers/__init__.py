@@ -188,6 +188,10 @@ def _jax(qp, fallback, structure, nv, nu, dtype, settings):
 
     if structure not in ("auto", "controller", "generic"):
         raise ValueError(f"structure must be 'auto', 'controller' or 'generic', got {structure!r}")
+    if dtype is None or jnp.dtype(dtype) == jnp.float64:
+        from safewbc_jax import require_x64
+
+        require_x64("solve_qp(solver='jax') in float64 (dtype=float32 runs without it)")
     if (nv is None) != (nu is None):
         raise ValueError("nv and nu must be given together")
     if structure == "controller" and nv is None:

@@ -64,10 +64,16 @@ def residuals(x, qp: QP, xp=np, slack=None):
 
 
 def scales(qp: QP, xp=np):
-    """(1 + max |b|, 1 + the largest |h|, |lb|, |ub| below BIG): the acceptance's scales."""
+    """(1 + max |b|, 1 + the largest |h|, |lb|, |ub| below BIG): the acceptance's scales.
+    A row of G that is all zero constrains nothing, and its h is left out: the controller
+    switches a barrier row off as 0 q_ddot >= -1e9 (``controller.build_qp``), and that
+    1e9 would otherwise make the tolerance on every other row 1e9 times looser."""
     eq_scale = 1.0 + xp.abs(qp.b).max(initial=0.0)
-    v = xp.abs(xp.concatenate([qp.h, qp.lb, qp.ub]))
-    in_scale = 1.0 + xp.where(v < BIG, v, 0.0).max(initial=0.0)
+    live = xp.any(qp.G != 0, axis=-1)
+    hv = xp.abs(qp.h)
+    bv = xp.abs(xp.concatenate([qp.lb, qp.ub]))
+    in_scale = 1.0 + xp.maximum(xp.where(live & (hv < BIG), hv, 0.0).max(initial=0.0),
+                                xp.where(bv < BIG, bv, 0.0).max(initial=0.0))
     return eq_scale, in_scale
 
 
