@@ -235,16 +235,24 @@ def nest(flat: dict) -> dict:
     return out
 
 
-def latency(t_qp, t_solve) -> dict:
-    """p50 / p99 of the controller step's wall time and its parts (us), the first
-    LATENCY_SKIP steps left out."""
+def latency(t_qp, t_solve, control_dt=None) -> dict:
+    """p50 / p99 / max of the controller step's wall time and its parts (us), the first
+    LATENCY_SKIP steps left out; with ``control_dt`` (s) the deadline misses: the steps
+    whose wall time exceeds the control period, counted and as a fraction of the steps."""
     t_qp, t_solve = np.asarray(t_qp, float), np.asarray(t_solve, float)
     lat = t_qp + t_solve
     skip = LATENCY_SKIP if lat.size > LATENCY_SKIP else 0
     pct = lambda x, p: float(np.percentile(x[skip:], p)) if x[skip:].size else float("nan")  # noqa: E731
-    return {"step_latency_us": {"p50": pct(lat, 50), "p99": pct(lat, 99)},
-            "latency_breakdown_us_p50": {"terms_and_assembly": pct(t_qp, 50),
-                                         "solve": pct(t_solve, 50)}}
+    out = {"step_latency_us": {"p50": pct(lat, 50), "p99": pct(lat, 99), "max": pct(lat, 100)},
+           "latency_breakdown_us_p50": {"terms_and_assembly": pct(t_qp, 50),
+                                        "solve": pct(t_solve, 50)}}
+    if control_dt is not None:
+        period = 1e6 * float(control_dt)
+        late = int(np.count_nonzero(lat[skip:] > period))
+        n = lat[skip:].size
+        out["deadline_misses"] = {"period_us": period, "count": late,
+                                  "rate": late / n if n else float("nan")}
+    return out
 
 
 def summarize(flat: dict, info: dict, scenario_name: str, control_dt: float,
@@ -259,7 +267,7 @@ def summarize(flat: dict, info: dict, scenario_name: str, control_dt: float,
     for k in ("fell", "control_steps", "bad_measurements", "qp_solved", "qp_failed",
               "fallbacks"):
         out[k] = m.pop(k)
-    out.update(latency(info["t_qp"], info["t_solve"]))
+    out.update(latency(info["t_qp"], info["t_solve"], control_dt))
     out["eq_residual_max"] = m.pop("eq_residual_max")
     for k in ("tracking_rms", "tracking_rms_components", "barrier_min"):
         out[k] = m.pop(k, {})

@@ -180,6 +180,10 @@ def format_summary(m: dict) -> str:
              f"{m['latency_breakdown_us_p50']['terms_and_assembly']:.0f} / solve "
              f"{m['latency_breakdown_us_p50']['solve']:.0f})",
              "  tracking RMS: " + ", ".join(f"{k} {v:.4f}" for k, v in m["tracking_rms"].items())]
+    if "deadline_misses" in m:
+        dm = m["deadline_misses"]
+        lines.insert(3, f"  over the {dm['period_us']:.0f} us control period: {dm['count']} steps "
+                        f"({100 * dm['rate']:.1f}%), max {m['step_latency_us']['max']:.0f} us")
     if m["barrier_min"]:
         unit = m.get("barrier_unit", {})   # h in milli-units: mm, mrad, mm/s
         lines.append("  barrier min h: " + ", ".join(f"{k} {v * 1000:+.1f} m{unit.get(k, 'm')}"

@@ -112,3 +112,15 @@ def test_finalize_of_an_empty_run_is_nan_not_inf():
                 "barrier_min.left_fist", "torso_pitch_max_reached"):
         assert np.isnan(flat[key]), key
     assert flat["qp_solved"] == 0 and flat["bad_measurements"] == 0
+
+
+def test_latency_and_deadline_misses():
+    """metrics.latency on made-up step times: percentiles of t_qp + t_solve after the
+    first LATENCY_SKIP steps, and the steps over the control period counted."""
+    k = metrics.LATENCY_SKIP
+    t_qp = np.concatenate([np.full(k, 5e4), np.full(100, 400.0)])      # warm-up left out
+    t_solve = np.concatenate([np.zeros(k), np.full(97, 200.0), [700.0, 900.0, 601.0]])
+    out = metrics.latency(t_qp, t_solve, 1e-3)
+    assert out["step_latency_us"]["p50"] == 600.0 and out["step_latency_us"]["max"] == 1300.0
+    assert out["deadline_misses"] == {"period_us": 1000.0, "count": 3, "rate": 0.03}
+    assert "deadline_misses" not in metrics.latency(t_qp, t_solve)
