@@ -30,8 +30,7 @@ def _cmd_run(args) -> int:
                      settle=args.settle, speed=args.speed, push=push, push_at=args.at,
                      push_for=args.push_for, quiet=args.quiet, safe_sets=tuple(args.safe_set))
     print(format_summary(m))
-    print(f"wrote {args.out or 'runs/' + args.scenario + ('' if not args.no_barrier else '_no_barrier')}"
-          "/metrics.json, log.npz and figures")
+    print(f"wrote {m['out_dir']}/metrics.json, log.npz and figures")
     return 0
 
 

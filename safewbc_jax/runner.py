@@ -126,7 +126,11 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
         params = apply_overrides(params, load_overrides(params_file), str(params_file))
     if video:
         check_video_backend(video)
-    out_dir = Path(out) if out else Path("runs") / (name + ("" if barrier else "_no_barrier"))
+    # default folder: runs/SCENARIO[+SAFE_SET...][_no_barrier], so that a run with a user's
+    # safe set does not overwrite the plain one
+    added = "".join(f"+{s.name}" for s in scenario.safe_sets[len(scenarios.get_scenario(
+        name, barrier).safe_sets):])
+    out_dir = Path(out) if out else Path("runs") / (name + added + ("" if barrier else "_no_barrier"))
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")
@@ -148,6 +152,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
         metrics["push"] = {"force_N": [float(f) for f in push], "at_s": push_at,
                            "for_s": push_for}
     metrics["safe_sets"] = [s if isinstance(s, str) else s.name for s in safe_sets]
+    metrics["out_dir"] = str(out_dir)
     metrics["barrier_unit"] = {s.name: s.unit for s in scenario.safe_sets}
     metrics["threshold"] = {k: float(v) for k, v in params.threshold.items()}
     metrics["poles"] = {k: np.asarray(v).tolist() for k, v in params.poles.items()}
