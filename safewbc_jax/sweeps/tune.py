@@ -63,6 +63,8 @@ class TuneResult:
     work: Path
     lower_bound_p1: float
     scenario: str
+    run_args: str = ""       # what ``safewbc run`` needs besides --params (the user's safe sets)
+    unit: str = "m"          # of the barrier's h
 
     def summary(self) -> str:
         b = self.best
@@ -71,12 +73,13 @@ class TuneResult:
         head = (f"tuned poles of {self.barrier}: [{poles}]  (round {b.round}; Theorem-1 bound "
                 f"p1 >= {self.lower_bound_p1:.4g} over the start states)")
         stats = (f"  over {b.n} rollouts: {b.violations} violations, {b.falls} falls "
-                 f"(unsafe rate 95% CI [{lo:.3f}, {hi:.3f}]), worst min h {b.hmin * 1e3:.2f} mm, "
+                 f"(unsafe rate 95% CI [{lo:.3f}, {hi:.3f}]), worst min h {b.hmin * 1e3:.2f} "
+                 f"m{self.unit}, "
                  f"mean objective {b.objective:.4g}")
         warn = "" if b.safe else ("\n  WARNING: no candidate was free of violations and falls; "
                                   "this is the least bad one")
-        return (f"{head}\n{stats}{warn}\nwrote {self.out} (safewbc run {self.scenario} "
-                f"--params {self.out}); rounds in {self.work}")
+        return (f"{head}\n{stats}{warn}\nwrote {self.out} (safewbc run {self.scenario}"
+                f"{self.run_args} --params {self.out}); rounds in {self.work}")
 
 
 def _pole_axes(name: str, r: int) -> tuple:
@@ -220,15 +223,21 @@ def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, execut
     # the params file: every parameter, with the tuned poles
     tuned = apply_overrides(base, {"poles": {name: list(best.poles)}}, "tuned poles")
     lo_ci, hi_ci = wilson_interval(best.unsafe, best.n)
+    # the user's safe sets must be given to ``safewbc run`` again (the params name them)
+    run_args = "".join(f" --safe-set {r}" for r in spec.safe_sets)
+    from safewbc_jax import scenarios
+
+    unit = next((s.unit for s in scenarios.get_scenario(spec.scenario, True, spec.safe_sets)
+                 .safe_sets if s.name == name), "m")
     header = [f"# safewbc tune-poles {spec.path}: poles of the {name!r} A-ECBF",
               f"# best of {len(history)} candidates in {len(rounds)} rounds; over {best.n} "
               f"rollouts of the distribution:",
               f"#   {best.violations} violations, {best.falls} falls (unsafe rate 95% Wilson CI "
               f"[{lo_ci:.3f}, {hi_ci:.3f}]),",
-              f"#   worst min h {best.hmin * 1e3:.3f} mm, mean {' + '.join(spec.tune['objective'])} "
+              f"#   worst min h {best.hmin * 1e3:.3f} m{unit}, mean {' + '.join(spec.tune['objective'])} "
               f"= {best.objective:.6g}",
               f"# Theorem 1 at the start states needs p1 >= {p1_bound:.6g}.",
-              f"# Use: safewbc run {spec.scenario} --params {out}", ""]
+              f"# Use: safewbc run {spec.scenario}{run_args} --params {out}", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(header) + to_toml(tuned))
     # read back as `safewbc run --params` will
@@ -238,4 +247,4 @@ def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, execut
     (work / "tuning.json").write_text(json.dumps(
         {"barrier": name, "best": dataclasses.asdict(best), "p1_bound": p1_bound,
          "rounds": rounds, "seed": seed}, indent=2, default=float))
-    return TuneResult(name, best, rounds, out, work, p1_bound, spec.scenario)
+    return TuneResult(name, best, rounds, out, work, p1_bound, spec.scenario, run_args, unit)
