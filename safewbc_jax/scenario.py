@@ -121,10 +121,6 @@ class Scenario:
                 out[t.name] = self._timed(t, tau, start)
         return out
 
-    def desired(self, tau, start):
-        """{name: (y^d, y^d_dot, y^d_ddot)} of the time-based tasks at tau."""
-        return {t.name: self._timed(t, tau, start) for t in self.tasks if t.reference is not None}
-
     def _timed(self, task: Task, tau, start):
         """A time-based reference with its AD derivatives, with the settle blend for tau < 0."""
         def settle_ref(s):
