@@ -241,7 +241,8 @@ def _quote(key: str) -> str:
 
 def _safe_set_refs(src, value) -> tuple:
     """sweep.safe_sets: a list of "FILE.py:NAME", FILE relative to the spec's folder ->
-    the references with absolute paths (SpecError naming what does not load)."""
+    the references with absolute paths (SpecError on a malformed one; the files are loaded,
+    once, by ``_scenario_info``)."""
     from safewbc_jax import safesets
 
     if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
@@ -253,7 +254,6 @@ def _safe_set_refs(src, value) -> tuple:
         try:
             path, name = safesets.split_ref(ref)
             full = f"{(base / path).resolve()}:{name}"
-            safesets.load(full)
         except safesets.SafeSetError as e:
             raise SpecError(f"{src}: sweep.safe_sets: {e}") from None
         refs.append(full)
