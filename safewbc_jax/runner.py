@@ -128,8 +128,9 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
         check_video_backend(video)
     # default folder: runs/SCENARIO[+SAFE_SET...][_no_barrier], so that a run with a user's
     # safe set does not overwrite the plain one
-    added = "".join(f"+{s.name}" for s in scenario.safe_sets[len(scenarios.get_scenario(
-        name, barrier).safe_sets):])
+    # (get_scenario appends the user's safe sets after the scenario's own)
+    added = "".join(f"+{s.name}" for s in scenario.safe_sets[len(scenario.safe_sets)
+                                                             - len(safe_sets):])
     out_dir = Path(out) if out else Path("runs") / (name + added + ("" if barrier else "_no_barrier"))
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
