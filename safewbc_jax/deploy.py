@@ -241,7 +241,7 @@ class Controller:
         if reason != "ok":
             raise ValueError(f"start state refused: {reason}")
         t0 = time.perf_counter()
-        model, sc, ctx = self.model, self.scenario, self.ctx
+        model, sc = self.model, self.scenario
         qj, vj = jnp.asarray(q), jnp.asarray(v)
         if self.barrier:
             check_barrier_poles(model, sc, self.params, qj, vj)
