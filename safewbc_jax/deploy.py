@@ -359,6 +359,29 @@ class Controller:
             r = self._record = HostRecord(rec, q, v, domain, x, res, t_qp, t_solve)
         return r
 
+    def kernels(self) -> dict:
+        """The kernels XLA runs for one call of the jitted step (``prepare`` with the
+        elimination), by kind, with "total" (``kernels.count``); after ``start``."""
+        from safewbc_jax import kernels
+
+        if self._prepare is None:
+            raise RuntimeError("Controller.kernels before start(q, v)")
+        q, v = self._start_qv
+        meas = self._well_formed(Measurement(q, v, 0.0, np.zeros(2)))
+        return kernels.count(self._prepare, self._fixed, self._state, meas)
+
+    def prepare_flat(self, state: control_step.ControllerState, meas: Measurement):
+        """The deployed step's jitted ``prepare`` (with the elimination) at a given
+        ControllerState and measurement, as ``step`` calls it (flat vectors in and out):
+        returns (state after it, the full QP, the reduced QP, the map back to X), numpy.
+        For tests and tools that hold the deployment to the pure functions; it changes
+        nothing in the controller."""
+        if self._prepare is None:
+            raise RuntimeError("Controller.prepare_flat before start(q, v)")
+        flat_state = jnp.asarray(self._flat["state"].pack(state))
+        new, _, packed = self._prepare(self._fixed, flat_state, self._well_formed(meas))
+        return (self._flat["state"].unpack(np.asarray(new)), *self._unpack_qp(packed))
+
     def metrics(self) -> dict:
         """The controller-side metric columns so far (``metrics.finalize``)."""
         return metrics.finalize(self.tally.acc, None, False,

@@ -61,8 +61,9 @@ def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_
     G = jnp.concatenate([g_lam, g_bar], axis=0)
     hv = jnp.concatenate([h_lambda, -barrier_b])
     soft = jnp.concatenate([soft_lambda, jnp.ones(barrier_rows.shape[0], dtype)])
-    P = jnp.diag(2.0 * gamma).at[:nv, :nv].add(task_P)
-    q = jnp.zeros(n, dtype).at[:nv].set(task_q)
+    # pads, not .at[].add/.set: a scatter is one more kernel, and IREE rejects it
+    P = jnp.diag(2.0 * gamma) + jnp.pad(task_P, ((0, n - nv), (0, n - nv)))
+    q = jnp.concatenate([task_q, jnp.zeros(n - nv, dtype)])
     inf = jnp.full(nv, jnp.inf, dtype)
     lb = jnp.concatenate([-inf, -u_max, jnp.full(nc, -jnp.inf, dtype)])
     ub = jnp.concatenate([inf, u_max, jnp.full(nc, jnp.inf, dtype)])

@@ -73,7 +73,8 @@ def load_at_stand():
     return ms, mc, robot.from_mujoco(mc), sm, d
 
 
-def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None):
+def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None,
+        observer=None):
     """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict with the
     finalized metric columns under "metrics", ``metrics.finalize``).
 
@@ -83,6 +84,10 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     "standing" (the settle, tau < 0) or "motion". It runs outside the timed part of the
     step (t_qp, t_solve), and must be cheap (``progress.Progress.update_to`` is: a few
     microseconds).
+
+    ``observer(meas)``, when given, is called once per control step with the measurement
+    the step's command was computed from, after the command is out and outside every
+    timed part (``benchmarks/controller_step.py`` runs TSID there, on the same states).
 
     The log's ``stance`` and ``missed_touchdowns`` at step k are the domain step k's QP ran
     in (the gait advanced from step k's measurement).
@@ -114,7 +119,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
 
     names = [o.name for o in scenario.outputs]
     hnames = [b.name for b in scenario.barriers + scenario.monitors]
-    log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_qp", "t_solve",
+    log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_qp", "t_solve", "latency",
                            "zmp_margin", "eq_residual", "loop_residual", "base_z", "lambda",
                            "qpos", "stance", "leg_contact", "missed_touchdowns", "alip")}
     for nm in names:
@@ -136,6 +141,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     meas, _ = sense(0.0)
     for k in range(n_steps):
         cmd = ctl.step(meas)
+        if observer is not None:
+            observer(meas)
         hr = ctl.record
         if hr is None:   # a measurement that could not enter the step (not from this loop)
             fell = True
@@ -157,6 +164,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         log["u"].append(cmd.u), log["status"].append(int(rec.status))
         log["fallback"].append(fb)
         log["t_qp"].append(hr.t_qp), log["t_solve"].append(hr.t_solve)
+        log["latency"].append(cmd.latency_us)
         log["eq_residual"].append(float(rec.eq_residual)), log["lambda"].append(rec.lam)
         log["zmp_margin"].append(float(rec.zmp_margin))
         log["stance"].append(float(rec.stance)), log["missed_touchdowns"].append(int(rec.missed))
@@ -193,4 +201,5 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
                         outputs=names, barriers=[b.name for b in scenario.barriers],
                         monitors=[b.name for b in scenario.monitors],
                         bad_measurements=ctl.bad_measurements, metrics=flat,
-                        t_qp=arrays["t_qp"], t_solve=arrays["t_solve"], compile_s=compile_s)
+                        t_qp=arrays["t_qp"], t_solve=arrays["t_solve"], compile_s=compile_s,
+                        controller=ctl)

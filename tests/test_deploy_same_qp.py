@@ -1,0 +1,119 @@
+"""The deployed step builds the controller's own QP: at 100 random states per scenario
+(walking in both stances as well as standing), the QP of ``Controller``'s jitted step (one
+call: the gait, the QP and the exact elimination, on flat vectors) equals the pure
+functions' (``control_step.prepare`` jitted on its pytrees, and the numpy elimination
+``reduce.eliminate_equalities_np`` of that QP) to 1e-9, and the step's kernel count stays
+bounded.
+
+Tolerance: both sides evaluate the same float64 expressions, compiled in two different
+programs (XLA may fuse and reorder them differently), and the two eliminations factor
+the same matrices with different LAPACK paths; 1e-9 relative to each array's largest
+entry is ~1e4 eps, above the reordering noise (~1e-13 seen) and the eliminations'
+cond x eps (~1e-11 seen), far below any change to the QP (a gain, a row, a state).
+"""
+
+import jax
+import numpy as np
+import pytest
+
+from safewbc_jax import control_step, statemap, walking
+from safewbc_jax.deploy import Controller, Measurement
+from safewbc_jax.qp_types import FIELDS
+from safewbc_jax.solvers import reduce
+
+N_STATES = 100
+TOL = 1e-9
+# Kernels of the deployed step (``Controller.kernels()["total"]``) measured when this test
+# was written: squat 288, walk 843. The bound is ~15% above, so that a change which
+# splits the step into many more kernels (each costs ~1 us on the CPU whatever its size)
+# fails here, and is seen in ``benchmarks/controller_step.py`` before it lands.
+KERNEL_BOUND = {"squat": 330, "walk": 970}
+
+
+@pytest.fixture(scope="module")
+def stand(sim_mj, ctrl_mj):
+    import mujoco
+
+    d = mujoco.MjData(sim_mj)
+    mujoco.mj_resetDataKeyframe(sim_mj, d, sim_mj.key("stand").id)
+    mujoco.mj_forward(sim_mj, d)
+    q, v = statemap.build_state_map(sim_mj, ctrl_mj).to_controller(d.qpos, d.qvel)
+    return q.copy(), v.copy()
+
+
+def _random_case(rng, ctl, q0, k):
+    """A state near the stand (hinges +-0.08 rad, base +-2 cm and a small tilt, rates
+    +-0.3) and a ControllerState: standing before the motion, or (walking) in a left or
+    right stance part-way through a step, with sole forces that load the stance foot."""
+    nq = q0.size
+    q = q0.copy()
+    q[:3] += rng.uniform(-0.02, 0.02, 3)
+    tilt = rng.normal(0.0, 0.03, 3)
+    w = np.concatenate([[1.0], 0.5 * tilt])
+    w /= np.linalg.norm(w)
+    x0 = q0[3:7]                                   # q0 quaternion (w, x, y, z) times w
+    q[3:7] = [x0[0] * w[0] - x0[1:] @ w[1:], *(x0[0] * w[1:] + w[0] * x0[1:]
+                                                 + np.cross(x0[1:], w[1:]))]
+    q[7:] += rng.uniform(-0.08, 0.08, nq - 7)
+    v = rng.uniform(-0.3, 0.3, ctl.model.nv)
+    st = control_step.init_state(ctl.ctx, q, v, np, np.float64)[0]
+    dt, settle = ctl.control_dt, ctl.scenario.settle
+    stance = (walking.BOTH, walking.LEFT, walking.RIGHT)[k % 3] if ctl.walking else walking.BOTH
+    tau = rng.uniform(0.05, 1.5) if stance != walking.BOTH else rng.uniform(-0.5, 1.5)
+    t = settle + tau
+    force = np.array([300.0, 0.0]) if stance == walking.LEFT else (
+        np.array([0.0, 300.0]) if stance == walking.RIGHT else np.array([230.0, 230.0]))
+    gait = st.gait._replace(stance=np.asarray(stance, float),
+                            tau_step=np.asarray(rng.uniform(0.0, 0.25)),
+                            stance0=np.array([0.0, 0.1 * stance, 0.0]),
+                            swing0=np.array([0.0, -0.1 * stance, 0.0]))
+    st = st._replace(gait=gait, t0=np.asarray(0.0), prev_t=np.asarray(t - dt),
+                     prev_tau=np.asarray(tau - dt))
+    return st, Measurement(q, v, t, force)
+
+
+def _close(name, a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    assert a.shape == b.shape, name
+    fin = np.isfinite(b)
+    assert np.array_equal(fin, np.isfinite(a)) and np.array_equal(a[~fin], b[~fin]), name
+    scale = max(1.0, float(np.abs(b[fin]).max(initial=0.0)))
+    err = float(np.abs(a[fin] - b[fin]).max(initial=0.0))
+    assert err <= TOL * scale, f"{name}: max |diff| {err:.3g} (scale {scale:.3g})"
+    return err / scale
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["squat", "bow", "arms", "walk", "push"])
+def test_deployed_step_builds_the_pure_functions_qp(stand, name):
+    ctl = Controller(name)
+    ctl.start(*stand)
+    fixed = (ctl.params, ctl.start_data, ctl.run_values)
+    ref = jax.jit(lambda f, s, m: control_step.prepare(ctl.ctx, *f, s, m))
+    rng = np.random.default_rng(14)
+    bounded = None
+    worst, stances = 0.0, set()
+    for k in range(N_STATES):
+        state, meas = _random_case(rng, ctl, stand[0], k)
+        new, qpm, red, rmap = ctl.prepare_flat(state, meas)
+        new_ref, _, qp_ref = jax.tree_util.tree_map(np.asarray, ref(fixed, state, meas))
+        for f in FIELDS:
+            worst = max(worst, _close(f"{name} state {k}: QP {f}", getattr(qpm, f),
+                                      getattr(qp_ref, f)))
+        for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(new_ref)):
+            _close(f"{name} state {k}: controller state", a, b)
+        if bounded is None:
+            bounded = reduce.bounded_variables(qp_ref)
+        red_ref, rmap_ref = reduce.eliminate_equalities_np(qp_ref, bounded)
+        for f in FIELDS:
+            worst = max(worst, _close(f"{name} state {k}: reduced QP {f}", getattr(red, f),
+                                      getattr(red_ref, f)))
+        for a, b in zip(jax.tree_util.tree_leaves(rmap), jax.tree_util.tree_leaves(rmap_ref)):
+            _close(f"{name} state {k}: map back to X", a, b)
+        stances.add(float(new.gait.stance))
+    if ctl.walking:      # both stances and standing were built
+        assert stances == {walking.BOTH, walking.LEFT, walking.RIGHT}, stances
+    if name in KERNEL_BOUND:
+        kern = ctl.kernels()
+        assert 50 < kern["total"] <= KERNEL_BOUND[name], kern
+    print(f"{name}: worst relative difference {worst:.2e} over {N_STATES} states")
