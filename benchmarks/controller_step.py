@@ -39,9 +39,13 @@ def _stats(a, skip):
 
 
 def _round(x):
+    """A metric value as plain JSON: floats to 5 decimals, 0-d arrays as scalars."""
     import numpy as np
 
-    return round(float(x), 5) if isinstance(x, (float, np.floating)) else x
+    a = np.asarray(x)
+    if a.ndim == 0:
+        return round(float(a), 5) if a.dtype.kind == "f" else a.item()
+    return a.tolist()
 
 
 def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
