@@ -310,8 +310,22 @@ def aecbf_row(h_fn, q, v, poles, relative_degree: int = 2) -> AECBFRow:
     return AECBFRow(a_row=a_row, b=b, eta=eta, drift=drift)
 
 
+def aecbf_row_from_terms(h, j_h, jdot_h_v, v, poles) -> AECBFRow:
+    """The A-ECBF row of eq. 28 for a relative-degree-2 barrier whose h, J_h and
+    J_h_dot v are given in closed form (``SafeSet.terms``): eta = [h, J_h v],
+    L_F^2 h = J_h_dot v, L_G L_F h = J_h, as ``barrier_lie_derivatives`` takes them by
+    automatic differentiation."""
+    poles = jnp.asarray(poles)
+    if poles.shape[-1] != 2:
+        raise ValueError(f"{poles.shape[-1]} poles for a barrier of relative degree 2")
+    eta = jnp.stack([h, j_h @ v])
+    a_row, b = aecbf_inequality(eta, jdot_h_v, j_h, k_alpha_from_poles(poles))
+    return AECBFRow(a_row=a_row, b=b, eta=eta, drift=jdot_h_v)
+
+
 __all__ = [
     "PoleError", "k_alpha_from_poles", "integrator_chain", "closed_loop_matrix",
     "comparison_bound", "b_functions", "b_function_rates", "admissible_pole_bounds",
     "check_poles", "AECBFRow", "aecbf_inequality", "barrier_lie_derivatives", "aecbf_row",
+    "aecbf_row_from_terms",
 ]

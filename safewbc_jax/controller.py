@@ -27,6 +27,7 @@ class Terms(NamedTuple):
     Jdot_v: jax.Array
     outputs: dict       # name -> (y^a, J_y, J_y_dot v)
     kin: tuple          # forward kinematics (xpos, xrot) of q
+    motion: object = None   # robot.BodyMotion at (q, v): closed-form barrier terms use it
 
 
 def constraint_jacobian(model: robot.RobotModel, q, kin=None):
@@ -76,9 +77,10 @@ def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
     motion = robot.body_motion(model, kin, v)
     dyn = robot.dynamics_from_motion(model, bodies, motion)
     dyn["domain"] = domain
-    outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
+    outs = {o.name: o.evaluate(model, q, v, cache={**dyn, "kin": kin, "motion": motion})
+            for o in scenario.outputs}
     return Terms(dyn["M"], dyn["h"], constraint_jacobian(model, q, kin),
-                 constraint_drift(model, kin, motion), outs, kin)
+                 constraint_drift(model, kin, motion), outs, kin, motion)
 
 
 def n_chain_rows(model) -> int:
@@ -120,14 +122,21 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
 
     rows, bs, hvals = [], [], {}
     for b in scenario.barriers:
-        r = barriers.aecbf_row(b.h_fn(model, params.threshold[b.name], domain), q, v,
-                               params.poles[b.name], b.relative_degree)
+        if b.terms is not None:     # closed form from this step's kinematics
+            r = barriers.aecbf_row_from_terms(
+                *b.terms(model, terms.kin, terms.motion, params.threshold[b.name], domain),
+                v, params.poles[b.name])
+        else:                       # automatic differentiation of h
+            r = barriers.aecbf_row(b.h_fn(model, params.threshold[b.name], domain), q, v,
+                                   params.poles[b.name], b.relative_degree)
         on = jnp.asarray(1.0 if barrier_on else 0.0, q.dtype) * b.is_active(domain)
         rows.append(on * r.a_row)
         bs.append(jnp.where(on > 0, r.b, -1e9))
         hvals[b.name] = r.eta[0]
     for b in scenario.monitors:
-        hvals[b.name] = b.value(model, q, v, params.threshold[b.name], domain)
+        hvals[b.name] = (b.terms(model, terms.kin, terms.motion, params.threshold[b.name],
+                                 domain)[0] if b.terms is not None else
+                         b.value(model, q, v, params.threshold[b.name], domain))
     brow = jnp.stack(rows) if rows else jnp.zeros((0, model.nv), q.dtype)
     bb = jnp.stack(bs) if bs else jnp.zeros((0,), q.dtype)
 

@@ -38,7 +38,9 @@ class Output:
 
     def evaluate(self, model: robot.RobotModel, q, v, cache=None):
         """(y^a, J_y, J_y_dot v). ``cache``: optional dict of terms already computed for
-        this (q, v) by ``robot.dynamics_and_com`` (outputs that can reuse them do)."""
+        this (q, v) by ``robot.dynamics_and_com``, and, from ``controller.robot_terms``,
+        the step's kinematics "kin" and body motion "motion" (outputs that can reuse them
+        do: the frame outputs then take their closed forms)."""
         f = lambda qq: self.value(model, qq)  # noqa: E731
         return f(q), spatial.tangent_jacobian(f, q, model.nv), spatial.second_derivative_along(f, q, v)
 
@@ -132,6 +134,8 @@ class FramePosition(Output):
         return robot.frame_pose(model, q, self.frame)[0]
 
     def evaluate(self, model, q, v, cache=None):
+        if cache is not None and "motion" in cache:   # closed form, this step's kinematics
+            return robot.site_point_terms(model, cache["kin"], cache["motion"], self.frame)
         j, jdv = spatial.with_drift(lambda qq: robot.frame_jacobian(model, qq, self.frame)[:3], q, v)
         return self.value(model, q), j, jdv
 
@@ -151,6 +155,12 @@ class FrameOrientation(Output):
 
     def value(self, model, q):
         return spatial.euler_zyx(robot.frame_pose(model, q, self.frame)[1])
+
+    def evaluate(self, model, q, v, cache=None):
+        if cache is not None and "motion" in cache:   # closed form, this step's kinematics
+            return robot.frame_orientation_terms(model, cache["kin"], cache["motion"],
+                                                 self.frame)
+        return super().evaluate(model, q, v, cache)
 
 
 ARM_JOINTS = tuple(f"{s}-{j}" for s in ("left", "right")

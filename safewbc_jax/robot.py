@@ -557,20 +557,83 @@ def torso_euler_terms(model: RobotModel, q, v):
     singular."""
     theta = torso_euler(model, q)
     k0 = model.body_dadr[0]
+    e, drift = _euler_rate_map(theta, v[k0 + 3:k0 + 6])
+    jac = jnp.zeros((3, model.nv), q.dtype).at[:, k0 + 3:k0 + 6].set(e)
+    return theta, jac, drift
+
+
+def _euler_rate_map(theta, w):
+    """E(roll, pitch) with theta_dot = E w for the body-frame angular velocity w, and
+    E_dot w with w held fixed (``torso_euler_terms``)."""
     sr, cr = jnp.sin(theta[0]), jnp.cos(theta[0])
     sp, cp = jnp.sin(theta[1]), jnp.cos(theta[1])
     tp, icp = sp / cp, 1.0 / cp
     zero, one = jnp.zeros_like(sr), jnp.ones_like(sr)
     e = jnp.stack([jnp.stack([one, sr * tp, cr * tp]), jnp.stack([zero, cr, -sr]),
                    jnp.stack([zero, sr * icp, cr * icp])])
-    jac = jnp.zeros((3, model.nv), q.dtype).at[:, k0 + 3:k0 + 6].set(e)
-    w = v[k0 + 3:k0 + 6]
     a = sr * w[1] + cr * w[2]
     b = cr * w[1] - sr * w[2]
     r_dot = w[0] + tp * a
     drift = (r_dot * jnp.stack([tp * b, -a, b * icp])
              + b * jnp.stack([a * icp * icp, zero, a * sp * icp * icp]))
-    return theta, jac, drift
+    return e, drift
+
+
+def frame_orientation_terms(model: RobotModel, kin, motion: BodyMotion, frame: str):
+    """(theta, J_theta, J_theta_dot v) of a site's Euler ZYX angles [roll, pitch, yaw] in
+    closed form. The site's body-frame angular velocity is w = R^T omega (omega, alpha:
+    its body's world angular velocity and bias acceleration, ``body_motion``), and along
+    q_ddot = 0, w_dot = R^T alpha (R^T omega x omega vanishes); with theta_dot = E w as for
+    the torso (``torso_euler_terms``): J_theta = E R^T J_omega, J_theta_dot v = E_dot w +
+    E R^T alpha. Singular at pitch = +-pi/2, as any Euler parametrisation."""
+    s = model.site_id(frame)
+    b = model.site_body[s]
+    xpos, xrot = kin
+    r = xrot[b] @ model.site_rot[s]
+    theta = spatial.euler_zyx(r)
+    p = xpos[b] + xrot[b] @ model.site_pos[s]
+    _, jw = point_jacobians(model, xpos, xrot, np.array([b]), p[None])
+    e, drift = _euler_rate_map(theta, r.T @ motion.omega[b])
+    return theta, e @ (r.T @ jw[0]), drift + e @ (r.T @ motion.alpha[b])
+
+
+def site_point_terms(model: RobotModel, kin, motion: BodyMotion, frame: str):
+    """(p, J_p, J_p_dot v) of a site's world position in closed form, from one kinematics
+    pass ``kin`` and the body motion (``body_motion``) at the step's (q, v)."""
+    s = model.site_id(frame)
+    b = np.array([model.site_body[s]])
+    xpos, xrot = kin
+    p = xpos[b[0]] + xrot[b[0]] @ model.site_pos[s]
+    jp, _ = point_jacobians(model, xpos, xrot, b, p[None])
+    return p, jp[0], motion.point_bias(b, p[None])[0]
+
+
+def position_in_terms(model: RobotModel, kin, motion: BodyMotion, frame: str, reference: str):
+    """(y, J_y, J_y_dot v) of y = R_r^T (p_f - p_r), ``frame``'s position in the frame
+    ``reference`` (``frame_position_in``), in closed form. With d = p_f - p_r and the
+    reference body's angular velocity w and bias acceleration w_dot (world):
+
+        y_dot = R_r^T (d_dot - w x d),          J_y = R_r^T (J_f - J_r + [d]x J_w),
+        J_y_dot v = R_r^T (d_ddot - w_dot x d - 2 w x d_dot + w x (w x d)),
+
+    d_ddot the two points' bias accelerations (q_ddot = 0), as the A-ECBF row (eq. 28)
+    needs them: no automatic differentiation of the kinematics."""
+    p_f, j_f, a_f = site_point_terms(model, kin, motion, frame)
+    p_r, j_r, a_r = site_point_terms(model, kin, motion, reference)
+    s = model.site_id(reference)
+    b = model.site_body[s]
+    f = model.site_body[model.site_id(frame)]
+    xpos, xrot = kin
+    rot = xrot[b] @ model.site_rot[s]
+    _, jw = point_jacobians(model, xpos, xrot, np.array([b]), p_r[None])
+    w, w_dot = motion.omega[b], motion.alpha[b]
+    d = p_f - p_r
+    d_dot = motion.point_velocity(np.array([f]), p_f[None])[0] - \
+        motion.point_velocity(np.array([b]), p_r[None])[0]
+    jy = rot.T @ (j_f - j_r + spatial.skew(d) @ jw[0])
+    bias = (a_f - a_r - jnp.cross(w_dot, d) - 2.0 * jnp.cross(w, d_dot)
+            + jnp.cross(w, jnp.cross(w, d)))
+    return rot.T @ d, jy, rot.T @ bias
 
 
 def frame_position_in(model: RobotModel, q, frame: str, reference: str):

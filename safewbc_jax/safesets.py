@@ -17,7 +17,12 @@ A ``SafeSet`` carries everything a scenario needs of one barrier:
   not active at the start state (the swing-foot barrier: at the start of the first step);
   None: at the start state itself;
 * ``enforce``: False evaluates h for the metrics and plots only (a monitor);
-* ``unit``: the unit of h, for the summaries ("m", "rad", "m/s", ...).
+* ``unit``: the unit of h, for the summaries ("m", "rad", "m/s", ...);
+* ``terms`` (optional, relative degree 2): ``terms(model, kin, motion, threshold, domain)
+  -> (h, J_h, J_h_dot v)`` in closed form from the step's kinematics (``kin``: forward
+  kinematics; ``motion``: ``robot.BodyMotion``), used for the QP row instead of automatic
+  differentiation of h, which on the CPU costs hundreds of kernels per barrier. It must
+  be h's own derivatives: the built-in ones are tested against the AD of h.
 
 A user adds one from their own file: ``load("path/to/file.py:NAME")`` imports the file and
 returns its ``NAME`` (a SafeSet, or a function of no arguments that returns one); the
@@ -57,6 +62,7 @@ class SafeSet:
     check_domain: Callable | None = None
     enforce: bool = True
     unit: str = "m"
+    terms: Callable | None = None
 
     def __post_init__(self):
         where = f"safe set {self.name!r}"
@@ -90,6 +96,9 @@ class SafeSet:
                                "(Theorem 1)")
         if not (isinstance(self.threshold, (int, float)) and math.isfinite(self.threshold)):
             raise SafeSetError(f"{where}: threshold {self.threshold!r} must be a finite number")
+        if self.terms is not None and (self.relative_degree != 2 or not callable(self.terms)):
+            raise SafeSetError(f"{where}: terms (closed-form h, J_h, J_h_dot v) must be a "
+                               "function, and only for relative degree 2")
         object.__setattr__(self, "poles", tuple(float(p) for p in poles))
         object.__setattr__(self, "threshold", float(self.threshold))
 

@@ -32,11 +32,20 @@ def _fist_height(side):
     return h
 
 
+def _fist_height_terms(side):
+    def terms(model, kin, motion, threshold, domain=None):
+        from safewbc_jax import robot
+
+        y, jy, jdv = robot.position_in_terms(model, kin, motion, f"{side}-fist", "torso")
+        return -y[2] - threshold, -jy[2], -jdv[2]
+    return terms
+
+
 def fist_barrier(side, enforce=True):
     """Paper, arm task, eq. 33: h(q) = -p_z(q) - c >= 0, p_z the fist's height in the torso base
-    frame."""
+    frame; its row from the closed-form terms of that position (``robot.position_in_terms``)."""
     return SafeSet(f"{side}_fist", _fist_height(side), 2, ARM_POLES, ARM_THRESHOLD,
-                   enforce=enforce)
+                   enforce=enforce, terms=_fist_height_terms(side))
 
 
 def _double_support_tasks(com, torso, arms):

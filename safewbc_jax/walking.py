@@ -157,8 +157,8 @@ class SwingFootPosition(outputs.Output):
 
     def evaluate(self, model, q, v, cache=None):
         domain = cache["domain"]
-        left = outputs.FramePosition(frame="left-sole").evaluate(model, q, v)
-        right = outputs.FramePosition(frame="right-sole").evaluate(model, q, v)
+        left = outputs.FramePosition(frame="left-sole").evaluate(model, q, v, cache)
+        right = outputs.FramePosition(frame="right-sole").evaluate(model, q, v, cache)
         return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
 
 
@@ -177,8 +177,8 @@ class SwingFootOrientation(outputs.Output):
 
     def evaluate(self, model, q, v, cache=None):
         domain = cache["domain"]
-        left = outputs.FrameOrientation(frame="left-sole").evaluate(model, q, v)
-        right = outputs.FrameOrientation(frame="right-sole").evaluate(model, q, v)
+        left = outputs.FrameOrientation(frame="left-sole").evaluate(model, q, v, cache)
+        right = outputs.FrameOrientation(frame="right-sole").evaluate(model, q, v, cache)
         return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
 
 
@@ -198,6 +198,17 @@ def swing_clearance_h(model, q, threshold, domain):
     return _heading_lateral(model, q, domain) - threshold
 
 
+def swing_clearance_terms(model, kin, motion, threshold, domain):
+    """(h, J_h, J_h_dot v) of ``swing_clearance_h`` in closed form: h is linear in the two
+    soles' world positions (the heading is the domain's, fixed within a step), so its
+    Jacobian and drift are that combination of the soles' (``robot.site_point_terms``)."""
+    pl, jl, al = robot.site_point_terms(model, kin, motion, "left-sole")
+    pr, jr, ar = robot.site_point_terms(model, kin, motion, "right-sole")
+    eye = jnp.eye(2, dtype=pl.dtype)
+    c = alip.world_to_heading(eye, domain["heading"])[:, 1]     # d_y = c . (p_l - p_r)_xy
+    return c @ (pl - pr)[:2] - threshold, c @ (jl - jr)[:2], c @ (al - ar)[:2]
+
+
 def _single_support(domain):
     return jnp.abs(domain["stance"])
 
@@ -206,7 +217,8 @@ def swing_barrier():
     """The collision-avoidance safe set (``swing_clearance_h``), active in single support
     and checked (Theorem 1) where the first step begins."""
     return SafeSet("swing_foot", swing_clearance_h, 2, SWING_POLES, SWING_MARGIN,
-                   active=_single_support, check_domain=first_step_domain)
+                   active=_single_support, check_domain=first_step_domain,
+                   terms=swing_clearance_terms)
 
 
 def passive_actuators(model, domain):

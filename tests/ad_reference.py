@@ -67,4 +67,4 @@ def robot_terms_ad(model: RobotModel, scenario, q, v, domain=None) -> Terms:
     dyn = dynamics_from_jacobians(model, bodies, dbodies, v)
     dyn["domain"] = domain
     outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
-    return Terms(dyn["M"], dyn["h"], J, dJ @ v, outs, kin)
+    return Terms(dyn["M"], dyn["h"], J, dJ @ v, outs, kin, robot.body_motion(model, kin, v))

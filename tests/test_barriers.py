@@ -352,6 +352,39 @@ def test_fist_barrier_row_against_finite_differences(ctrl_mj, rm, fist, robot_st
         assert float(b_alg) == pytest.approx(float(row.b), rel=1e-13, abs=1e-13)
 
 
+def test_closed_form_terms_equal_the_rows_by_automatic_differentiation(rm, robot_states):
+    """The controller builds the fist and swing-foot rows from ``SafeSet.terms`` (closed
+    form from one kinematics pass and ``robot.body_motion``); they equal the rows by AD of
+    the same h (held to MuJoCo and finite differences above) to 1e-10 relative: both are
+    float64 evaluations of the same derivatives, in different orders."""
+    from safewbc_jax import robot, walking
+
+    poles = jnp.asarray([2.0, 6.0])
+    cases = [(scenarios.fist_barrier(side), None) for side in ("left", "right")]
+    cases += [(walking.swing_barrier(), {"heading": jnp.asarray(yaw)}) for yaw in (0.0, 0.7)]
+
+    @jax.jit
+    def rows(q, v, heading):
+        kin = robot.forward_kinematics(rm, q)
+        motion = robot.body_motion(rm, kin, v)
+        out = []
+        for b, dom in cases:
+            dom = None if dom is None else {"heading": heading * (dom["heading"] != 0)}
+            thr = b.threshold
+            closed = bf.aecbf_row_from_terms(*b.terms(rm, kin, motion, thr, dom), v, poles)
+            ad = bf.aecbf_row(b.h_fn(rm, thr, dom), q, v, poles, 2)
+            out.append((closed, ad))
+        return out
+
+    for q, v in robot_states:
+        for (b, _), (closed, ad) in zip(cases, rows(jnp.asarray(q), jnp.asarray(v), 0.7)):
+            for f in ("a_row", "b", "eta", "drift"):
+                x, y = np.asarray(getattr(closed, f)), np.asarray(getattr(ad, f))
+                scale = max(1.0, float(np.abs(y).max()))
+                assert np.abs(x - y).max() <= 1e-10 * scale, (b.name, f, x, y)
+            assert np.abs(np.asarray(ad.a_row)).max() > 0.1     # a row that depends on q
+
+
 def test_relative_degree_one_row_against_finite_differences(ctrl_mj, rm, fist, robot_states):
     """h(q, v): L_G h = dh/dv by central differences in v, and L_F h = d/dt h(q(t), v) along
     q(t) = mj_integratePos(q, v t) (q_ddot = 0, MuJoCo's quaternion integration)."""

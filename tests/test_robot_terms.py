@@ -160,3 +160,55 @@ def test_vmap_over_states(rm, states, jitted):
     batched = jax.vmap(robot.mass_matrix, in_axes=(None, 0))(rm, qs)
     for i in range(4):
         np.testing.assert_allclose(batched[i], jitted["M"](rm, qs[i]), atol=1e-12)
+
+
+def test_closed_form_frame_terms_equal_forward_mode_ad(rm, states):
+    """``robot.site_point_terms``, ``frame_orientation_terms`` and ``position_in_terms``
+    (what the frame outputs and the fist and swing-foot barriers use in the control step)
+    against forward-mode AD of the same values along the configuration manifold
+    (``spatial.tangent_jacobian``, ``second_derivative_along``), whose Jacobians and drifts
+    are held to MuJoCo above. 1e-9 relative: float64 evaluations of the same derivatives,
+    in a different order; an orientation at |cos pitch| < 0.05 (random base orientations
+    reach it), where Euler rates are singular, is left out, and most are kept."""
+
+    def pose_terms(q, v):
+        kin = robot.forward_kinematics(rm, q)
+        motion = robot.body_motion(rm, kin, v)
+        out = {}
+        for f in ("left-sole", "right-sole", "left-fist"):
+            out[f"p:{f}"] = robot.site_point_terms(rm, kin, motion, f)
+            out[f"r:{f}"] = robot.frame_orientation_terms(rm, kin, motion, f)
+        out["in:left-fist"] = robot.position_in_terms(rm, kin, motion, "left-fist", "torso")
+        out["in:right-sole"] = robot.position_in_terms(rm, kin, motion, "right-sole",
+                                                       "left-fist")
+        return out
+
+    def values(q):
+        out = {}
+        for f in ("left-sole", "right-sole", "left-fist"):
+            p, r = robot.frame_pose(rm, q, f)
+            out[f"p:{f}"], out[f"r:{f}"] = p, spatial.euler_zyx(r)
+        out["in:left-fist"] = robot.frame_position_in(rm, q, "left-fist", "torso")
+        out["in:right-sole"] = robot.frame_position_in(rm, q, "right-sole", "left-fist")
+        return out
+
+    def ad_terms(q, v):
+        y = values(q)
+        jac = jax.jacfwd(lambda t: values(spatial.integrate(q, t)))(jnp.zeros(rm.nv))
+        drift = spatial.second_derivative_along(values, q, v)
+        return {k: (y[k], jac[k], drift[k]) for k in y}
+
+    closed_fn, ad_fn = jax.jit(pose_terms), jax.jit(ad_terms)
+    kept = left_out = 0
+    for q, v in states[:8]:
+        closed, ad = closed_fn(jnp.asarray(q), jnp.asarray(v)), ad_fn(jnp.asarray(q), jnp.asarray(v))
+        for k in ad:
+            if k.startswith("r:") and abs(np.cos(float(ad[k][0][1]))) < 0.05:
+                left_out += 1
+                continue
+            kept += 1
+            for part, a, b in zip(("value", "J", "J_dot v"), closed[k], ad[k]):
+                a, b = np.asarray(a), np.asarray(b)
+                scale = max(1.0, float(np.abs(b).max()))
+                assert np.abs(a - b).max() <= 1e-9 * scale, (k, part, np.abs(a - b).max())
+    assert kept >= 40 and left_out <= 8, (kept, left_out)
