@@ -29,7 +29,7 @@ import numpy as np
 from safewbc_jax import control_step, metrics, paths, robot, scenarios
 from safewbc_jax.packing import FlatTree, Packer
 from safewbc_jax.solvers import reduce
-from safewbc_jax.solvers.piqp_path import PiqpSolver
+from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
 from safewbc_jax.solvers.result import FALLBACK_FAILED, FALLBACK_RELAXED, fallback_name, failed
 from safewbc_jax.solvers.status import SolveStatus
 
@@ -215,7 +215,8 @@ class Controller:
         if isinstance(solver, str) and solver != "piqp":
             raise ValueError(f"solver {solver!r}: 'piqp' or a PiqpSolver-like object (the JAX "
                              "solver runs batched, batch.rollout)")
-        self.solver = PiqpSolver() if solver == "piqp" else solver
+        self.solver = (PiqpSolver(nominal_settings=REDUCED_QP_SETTINGS) if solver == "piqp"
+                       else solver)
         self.scenario = dataclasses.replace(sc, settle=settle)
         self.params = sc.default_params() if params is None else params
         self.control_dt, self.barrier, self.speed = float(control_dt), bool(barrier), speed
