@@ -67,7 +67,7 @@ class TsidStep:
         return qp, vp
 
     def start(self, q, v):
-        tsid, pin = self.tsid, self.pin
+        tsid = self.tsid
         qp, vp = self.to_pin(q, v)
         form = tsid.InverseDynamicsFormulationAccForce("tsid", self.robot, False)
         form.computeProblemData(0.0, qp, vp)

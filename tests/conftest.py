@@ -92,3 +92,17 @@ def short_walk_deployment(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("short_walk_deployment")
     return run_scenario("walk", duration=2.2, settle=1.2, out=out, quiet=True), out
+
+
+@pytest.fixture(scope="session")
+def stand(sim_mj, ctrl_mj):
+    """(q, v) of the controller at the ``stand`` keyframe of the simulation model."""
+    import mujoco
+
+    from safewbc_jax import statemap
+
+    d = mujoco.MjData(sim_mj)
+    mujoco.mj_resetDataKeyframe(sim_mj, d, sim_mj.key("stand").id)
+    mujoco.mj_forward(sim_mj, d)
+    q, v = statemap.build_state_map(sim_mj, ctrl_mj).to_controller(d.qpos, d.qvel)
+    return q.copy(), v.copy()

@@ -19,18 +19,6 @@ README = Path(__file__).resolve().parent.parent / "README.md"
 
 
 @pytest.fixture(scope="module")
-def stand(sim_mj, ctrl_mj):
-    """(q, v) of the controller at the ``stand`` keyframe of the simulation model."""
-    import mujoco
-
-    d = mujoco.MjData(sim_mj)
-    mujoco.mj_resetDataKeyframe(sim_mj, d, sim_mj.key("stand").id)
-    mujoco.mj_forward(sim_mj, d)
-    q, v = statemap.build_state_map(sim_mj, ctrl_mj).to_controller(d.qpos, d.qvel)
-    return q.copy(), v.copy()
-
-
-@pytest.fixture(scope="module")
 def squat(stand):
     ctl = Controller("squat")
     ctl.start(*stand)

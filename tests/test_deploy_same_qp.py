@@ -16,7 +16,7 @@ import jax
 import numpy as np
 import pytest
 
-from safewbc_jax import control_step, statemap, walking
+from safewbc_jax import control_step, walking
 from safewbc_jax.deploy import Controller, Measurement
 from safewbc_jax.qp_types import FIELDS
 from safewbc_jax.solvers import reduce
@@ -29,17 +29,6 @@ TOL = 1e-9
 # splits the step into many more kernels (each costs ~1 us on the CPU whatever its size)
 # fails here, and is seen in ``benchmarks/controller_step.py`` before it lands.
 KERNEL_BOUND = {"squat": 330, "arms": 350, "walk": 540}
-
-
-@pytest.fixture(scope="module")
-def stand(sim_mj, ctrl_mj):
-    import mujoco
-
-    d = mujoco.MjData(sim_mj)
-    mujoco.mj_resetDataKeyframe(sim_mj, d, sim_mj.key("stand").id)
-    mujoco.mj_forward(sim_mj, d)
-    q, v = statemap.build_state_map(sim_mj, ctrl_mj).to_controller(d.qpos, d.qvel)
-    return q.copy(), v.copy()
 
 
 def _random_case(rng, ctl, q0, k):
