@@ -49,8 +49,6 @@ def _round(x):
 
 
 def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
-    import numpy as np
-
     from safewbc_jax import metrics, scenarios
     from safewbc_jax.push import Push
     from safewbc_jax.runner import check_run_options
@@ -81,15 +79,12 @@ def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
     kern = info["controller"].kernels()
     skip = metrics.LATENCY_SKIP
     lat = log["latency"]
-    period = 1e6 * control_dt
-    late = int(np.count_nonzero(np.asarray(lat)[skip:] > period))
     m = info["metrics"]
     res = {
         "scenario": name, "steps": int(lat.size), "wall_s": round(wall, 1),
         "compile_s": round(float(info["compile_s"]), 1),
         "command_us": _stats(lat, skip),
-        "deadline_misses": {"period_us": period, "count": late,
-                            "rate": round(late / max(1, lat.size - skip), 4)},
+        "deadline_misses": metrics.deadline_misses(lat[skip:], control_dt),
         "breakdown_us": {"jitted_step": _stats(log["t_qp"], skip),
                          "piqp_solve": _stats(log["t_solve"], skip),
                          "rest_of_step": _stats(lat - log["t_qp"] - log["t_solve"], skip)},

@@ -27,7 +27,7 @@ class Terms(NamedTuple):
     Jdot_v: jax.Array
     outputs: dict       # name -> (y^a, J_y, J_y_dot v)
     kin: tuple          # forward kinematics (xpos, xrot) of q
-    motion: object = None   # robot.BodyMotion at (q, v): closed-form barrier terms use it
+    motion: robot.BodyMotion  # body motion at (q, v): the closed-form terms use it
 
 
 def constraint_jacobian(model: robot.RobotModel, q, kin=None):

@@ -247,12 +247,18 @@ def latency(t_qp, t_solve, control_dt=None) -> dict:
            "latency_breakdown_us_p50": {"terms_and_assembly": pct(t_qp, 50),
                                         "solve": pct(t_solve, 50)}}
     if control_dt is not None:
-        period = 1e6 * float(control_dt)
-        late = int(np.count_nonzero(lat[skip:] > period))
-        n = lat[skip:].size
-        out["deadline_misses"] = {"period_us": period, "count": late,
-                                  "rate": late / n if n else float("nan")}
+        out["deadline_misses"] = deadline_misses(lat[skip:], control_dt)
     return out
+
+
+def deadline_misses(step_us, control_dt) -> dict:
+    """The steps whose wall time (us) exceeds the control period ``control_dt`` (s):
+    {"period_us", "count", "rate"} (rate NaN without steps)."""
+    step_us = np.asarray(step_us, float)
+    period = 1e6 * float(control_dt)
+    late = int(np.count_nonzero(step_us > period))
+    return {"period_us": period, "count": late,
+            "rate": late / step_us.size if step_us.size else float("nan")}
 
 
 def summarize(flat: dict, info: dict, scenario_name: str, control_dt: float,

@@ -579,6 +579,17 @@ def _euler_rate_map(theta, w):
     return e, drift
 
 
+def _site_motion_terms(model: RobotModel, kin, frame: str):
+    """Of a named site, from one kinematics pass: its body (static), world position p,
+    world rotation R, and the linear and angular Jacobians of p (3 x nv each)."""
+    s = model.site_id(frame)
+    b = model.site_body[s]
+    xpos, xrot = kin
+    p = xpos[b] + xrot[b] @ model.site_pos[s]
+    jp, jw = point_jacobians(model, xpos, xrot, np.array([b]), p[None])
+    return b, p, xrot[b] @ model.site_rot[s], jp[0], jw[0]
+
+
 def frame_orientation_terms(model: RobotModel, kin, motion: BodyMotion, frame: str):
     """(theta, J_theta, J_theta_dot v) of a site's Euler ZYX angles [roll, pitch, yaw] in
     closed form. The site's body-frame angular velocity is w = R^T omega (omega, alpha:
@@ -586,26 +597,17 @@ def frame_orientation_terms(model: RobotModel, kin, motion: BodyMotion, frame: s
     q_ddot = 0, w_dot = R^T alpha (R^T omega x omega vanishes); with theta_dot = E w as for
     the torso (``torso_euler_terms``): J_theta = E R^T J_omega, J_theta_dot v = E_dot w +
     E R^T alpha. Singular at pitch = +-pi/2, as any Euler parametrisation."""
-    s = model.site_id(frame)
-    b = model.site_body[s]
-    xpos, xrot = kin
-    r = xrot[b] @ model.site_rot[s]
+    b, _, r, _, jw = _site_motion_terms(model, kin, frame)
     theta = spatial.euler_zyx(r)
-    p = xpos[b] + xrot[b] @ model.site_pos[s]
-    _, jw = point_jacobians(model, xpos, xrot, np.array([b]), p[None])
     e, drift = _euler_rate_map(theta, r.T @ motion.omega[b])
-    return theta, e @ (r.T @ jw[0]), drift + e @ (r.T @ motion.alpha[b])
+    return theta, e @ (r.T @ jw), drift + e @ (r.T @ motion.alpha[b])
 
 
 def site_point_terms(model: RobotModel, kin, motion: BodyMotion, frame: str):
     """(p, J_p, J_p_dot v) of a site's world position in closed form, from one kinematics
     pass ``kin`` and the body motion (``body_motion``) at the step's (q, v)."""
-    s = model.site_id(frame)
-    b = np.array([model.site_body[s]])
-    xpos, xrot = kin
-    p = xpos[b[0]] + xrot[b[0]] @ model.site_pos[s]
-    jp, _ = point_jacobians(model, xpos, xrot, b, p[None])
-    return p, jp[0], motion.point_bias(b, p[None])[0]
+    b, p, _, jp, _ = _site_motion_terms(model, kin, frame)
+    return p, jp, motion.point_bias(np.array([b]), p[None])[0]
 
 
 def position_in_terms(model: RobotModel, kin, motion: BodyMotion, frame: str, reference: str):
@@ -618,19 +620,16 @@ def position_in_terms(model: RobotModel, kin, motion: BodyMotion, frame: str, re
 
     d_ddot the two points' bias accelerations (q_ddot = 0), as the A-ECBF row (eq. 28)
     needs them: no automatic differentiation of the kinematics."""
-    p_f, j_f, a_f = site_point_terms(model, kin, motion, frame)
-    p_r, j_r, a_r = site_point_terms(model, kin, motion, reference)
-    s = model.site_id(reference)
-    b = model.site_body[s]
-    f = model.site_body[model.site_id(frame)]
-    xpos, xrot = kin
-    rot = xrot[b] @ model.site_rot[s]
-    _, jw = point_jacobians(model, xpos, xrot, np.array([b]), p_r[None])
+    f, p_f, _, j_f, _ = _site_motion_terms(model, kin, frame)
+    b, p_r, rot, j_r, jw = _site_motion_terms(model, kin, reference)
+    v_f = motion.point_velocity(np.array([f]), p_f[None])
+    v_r = motion.point_velocity(np.array([b]), p_r[None])
+    a_f = motion.point_bias(np.array([f]), p_f[None], v_f)[0]
+    a_r = motion.point_bias(np.array([b]), p_r[None], v_r)[0]
     w, w_dot = motion.omega[b], motion.alpha[b]
     d = p_f - p_r
-    d_dot = motion.point_velocity(np.array([f]), p_f[None])[0] - \
-        motion.point_velocity(np.array([b]), p_r[None])[0]
-    jy = rot.T @ (j_f - j_r + spatial.skew(d) @ jw[0])
+    d_dot = v_f[0] - v_r[0]
+    jy = rot.T @ (j_f - j_r + spatial.skew(d) @ jw)
     bias = (a_f - a_r - jnp.cross(w_dot, d) - 2.0 * jnp.cross(w, d_dot)
             + jnp.cross(w, jnp.cross(w, d)))
     return rot.T @ d, jy, rot.T @ bias

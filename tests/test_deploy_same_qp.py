@@ -16,7 +16,7 @@ import jax
 import numpy as np
 import pytest
 
-from safewbc_jax import control_step, walking
+from safewbc_jax import control_step, spatial, walking
 from safewbc_jax.deploy import Controller, Measurement
 from safewbc_jax.qp_types import FIELDS
 from safewbc_jax.solvers import reduce
@@ -41,9 +41,7 @@ def _random_case(rng, ctl, q0, k):
     tilt = rng.normal(0.0, 0.03, 3)
     w = np.concatenate([[1.0], 0.5 * tilt])
     w /= np.linalg.norm(w)
-    x0 = q0[3:7]                                   # q0 quaternion (w, x, y, z) times w
-    q[3:7] = [x0[0] * w[0] - x0[1:] @ w[1:], *(x0[0] * w[1:] + w[0] * x0[1:]
-                                                 + np.cross(x0[1:], w[1:]))]
+    q[3:7] = np.asarray(spatial.quat_mul(q0[3:7], w))     # the stand's orientation, tilted
     q[7:] += rng.uniform(-0.08, 0.08, nq - 7)
     v = rng.uniform(-0.3, 0.3, ctl.model.nv)
     st = control_step.init_state(ctl.ctx, q, v, np, np.float64)[0]

@@ -76,7 +76,8 @@ def load_at_stand():
 def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None,
         observer=None):
     """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict with the
-    finalized metric columns under "metrics", ``metrics.finalize``).
+    finalized metric columns under "metrics", ``metrics.finalize``, and the deployed
+    ``Controller`` that ran under "controller").
 
     ``progress(k, n, phase)``, when given, is called with k = 0 and phase "compiling" just
     before the controller starts (Theorem 1, compile, warm-up: ``Controller.start``), then
