@@ -49,6 +49,18 @@ def _compile_cache(args) -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+def _check_engine(args) -> None:
+    """--workers against the CPUs, and --workers without --engine mujoco (before anything
+    compiles)."""
+    from safewbc_jax.sweeps.pool import check_workers
+
+    if args.workers is not None:
+        if args.engine == "mjx":
+            raise ValueError(f"--workers {args.workers}: only the mujoco engine has workers "
+                             "(--engine mujoco)")
+        check_workers(args.workers)
+
+
 def _cmd_sweep(args) -> int:
     from pathlib import Path
 
@@ -58,6 +70,7 @@ def _cmd_sweep(args) -> int:
     if args.host_index >= args.hosts:
         raise ValueError(f"--host-index {args.host_index}: must be below --hosts {args.hosts}")
     spec = load_spec(args.spec)          # every check before anything compiles
+    _check_engine(args)
     hosts, index = args.hosts, args.host_index
     if args.distributed:
         import jax
@@ -68,7 +81,8 @@ def _cmd_sweep(args) -> int:
     try:
         r = run_sweep(spec, args.out, batch=args.batch, seed=args.seed,
                       spec_text=Path(args.spec).read_text(), max_chunks=args.max_chunks,
-                      hosts=hosts, host_index=index, quiet=args.quiet)
+                      hosts=hosts, host_index=index, quiet=args.quiet, engine=args.engine,
+                      workers=args.workers)
     except KeyboardInterrupt:
         print(f"safewbc: interrupted; the finished chunks are kept in {args.out}, rerun the "
               "same command to resume", file=sys.stderr)
@@ -93,9 +107,10 @@ def _cmd_tune_poles(args) -> int:
     from safewbc_jax.sweeps.tune import tune_poles
 
     spec = load_spec(args.spec)
+    _check_engine(args)
     _compile_cache(args)
     r = tune_poles(spec, args.out, work=args.work, batch=args.batch, seed=args.seed,
-                   quiet=args.quiet)
+                   quiet=args.quiet, engine=args.engine, workers=args.workers)
     print(r.summary())
     return 0
 
@@ -212,6 +227,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="this host's index (0-based, below --hosts)")
     p.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() "
                    "and take --hosts / --host-index from jax.process_count() / process_index()")
+    p.add_argument("--engine", choices=("auto", "mjx", "mujoco"), default="auto",
+                   help="mjx: batched MJX rollouts (JAX QP solver); mujoco: one deployment "
+                   "loop (C MuJoCo + PIQP) per CPU; auto: mjx on an accelerator, on a CPU "
+                   "the faster of the two as measured (README, 'Sweeps on a CPU')")
+    p.add_argument("--workers", type=_int_at_least(1), default=None,
+                   help="--engine mujoco: worker processes, one pinned to each CPU "
+                   "(default: one per CPU this process may use)")
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
@@ -233,6 +255,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=_int_at_least(1), default=None, help="rollouts per chunk")
     p.add_argument("--seed", type=_int_at_least(0), default=None,
                    help="seed of the perturbations")
+    p.add_argument("--engine", choices=("auto", "mjx", "mujoco"), default="auto",
+                   help="mjx: batched MJX rollouts (JAX QP solver); mujoco: one deployment "
+                   "loop (C MuJoCo + PIQP) per CPU; auto: mjx on an accelerator, on a CPU "
+                   "the faster of the two as measured (README, 'Sweeps on a CPU')")
+    p.add_argument("--workers", type=_int_at_least(1), default=None,
+                   help="--engine mujoco: worker processes, one pinned to each CPU "
+                   "(default: one per CPU this process may use)")
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "

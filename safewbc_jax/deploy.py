@@ -258,6 +258,29 @@ class Controller:
         self.compile_s = time.perf_counter() - t0
         return self.compile_s
 
+    def restart(self, q, v, params=None):
+        """Start again from the state (q, v), with ``params`` (ControllerParams of the same
+        shapes; None: keep the current ones), without compiling: the checks of ``start``
+        (the state, Theorem 1 for these poles at this start), the references' start data
+        at q, then ``reset``. A sweep's worker (``sweeps.pool``) runs its rollouts one
+        after the other this way through one compiled controller."""
+        if self._prepare is None:
+            raise RuntimeError("Controller.restart before start(q, v)")
+        q, v = np.asarray(q, float), np.asarray(v, float)
+        reason = check_state(q, v, self.model.nq, self.model.nv)
+        if reason != "ok":
+            raise ValueError(f"start state refused: {reason}")
+        params = self.params if params is None else params
+        if self.barrier:
+            check_barrier_poles(self.model, self.scenario, params, jnp.asarray(q), jnp.asarray(v))
+        if not np.array_equal(q, self._start_qv[0]):
+            self.start_data = control_step.start_data(self.model, self.scenario, jnp.asarray(q))
+        self.params = params
+        self._fixed = jnp.asarray(self._flat["fixed"].pack((params, self.start_data,
+                                                             self.run_values)))
+        self._start_qv = (q, v)
+        self.reset()
+
     def _compile(self, q, v):
         """The jitted prepare (with the elimination) and conclude, on flat vectors: every
         argument and result of a step is one float64 vector (``packing.FlatTree``), not a

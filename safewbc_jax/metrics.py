@@ -220,6 +220,21 @@ def finalize(acc: ControlAcc, plant: PlantAcc | None, fell, gait=None) -> dict:
     return out
 
 
+# the metric columns of a sweep's table: ``finalize``'s, less the per-component tracking
+# and the torso pitch extremes (a single run's metrics.json has them), plus fell_time_s
+SINGLE_RUN_ONLY = ("tracking_rms_components.", "torso_pitch_")
+
+
+def table_columns(flat: dict, fell_step, control_dt: float) -> dict:
+    """``finalize``'s columns as a sweep table has them (``SINGLE_RUN_ONLY`` left out),
+    with ``fell_time_s``: the time of the control step the robot fell at (``fell_step``,
+    -1 where it did not: NaN), for every engine of ``safewbc sweep``."""
+    out = {k: np.asarray(v) for k, v in flat.items() if not k.startswith(SINGLE_RUN_ONLY)}
+    fs = np.asarray(fell_step)
+    out["fell_time_s"] = np.where(fs >= 0, fs * float(control_dt), np.nan)
+    return out
+
+
 def nest(flat: dict) -> dict:
     """Flat columns of one run -> the nested dict of ``metrics.json`` (Python scalars)."""
     out = {}

@@ -5,7 +5,11 @@ import time
 
 import pytest
 
+from pathlib import Path
+
 from safewbc_jax import cli
+
+SPEC = str(Path(__file__).resolve().parents[1] / "sweeps" / "kalpha_poles.toml")
 
 
 def _run(argv, capsys):
@@ -62,6 +66,13 @@ def test_run_options_refused(argv, msg, capsys, tmp_path):
     (["sweep", "S", "--out", "o", "--batch", "1.5"], "is not an integer"),
     (["tune-poles", "S", "--out", "o.toml", "--batch", "-3"], "expected an integer >= 1"),
     (["tune-poles", "S", "--out", "o.toml", "--seed", "x"], "is not an integer"),
+    (["sweep", SPEC, "--out", "o", "--engine", "gpu"], "invalid choice: 'gpu'"),
+    (["sweep", SPEC, "--out", "o", "--engine", "mujoco", "--workers", "999"],
+     "--workers 999: this process may run on"),
+    (["sweep", SPEC, "--out", "o", "--workers", "0"], "expected an integer >= 1"),
+    (["sweep", SPEC, "--out", "o", "--engine", "mjx", "--workers", "1"],
+     "only the mujoco engine has workers"),
+    (["tune-poles", SPEC, "--out", "o.toml", "--workers", "999"], "this process may run on"),
 ])
 def test_sweep_and_tune_options_refused(argv, msg, capsys):
     rc, err = _run(argv, capsys)

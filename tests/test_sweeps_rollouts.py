@@ -201,3 +201,174 @@ def test_notebook_runs_in_small_configuration(tmp_path):
     assert m["poles"]["left_fist"] == pytest.approx(best)
     assert not m["fell"] and m["qp_failed"] == 0
     assert m["barrier_min"]["left_fist"] > 0.0
+
+
+# --- the mujoco engine (sweeps.pool): the same spec through a pool of deployment loops
+
+def _children(pid: int) -> set:
+    """Pids of the live processes whose parent is ``pid`` (from /proc)."""
+    kids = set()
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                kids.add(int(d.name))
+    return kids
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = (Path("/proc") / str(pid) / "stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+@pytest.fixture(scope="module")
+def mujoco_sweeps(tmp_path_factory):
+    """The spec with ``--engine mujoco``: (C) two workers, the parent killed with SIGKILL
+    once the first chunk is on disk, then rerun to completion; (D) one worker, in one go."""
+    tmp = tmp_path_factory.mktemp("mujoco_sweeps")
+    spec = tmp / "tiny.toml"
+    spec.write_text(SPEC)
+    c, d = tmp / "two_workers", tmp / "one_worker"
+    cmd = lambda out, w: sweep_cmd(spec, out) + ["--engine", "mujoco", "--workers", str(w)]  # noqa: E731
+    log = open(tmp / "c1.log", "w")
+    proc = subprocess.Popen(cmd(c, 2), env=sweep_env(1), stdout=log, stderr=subprocess.STDOUT,
+                            cwd=tmp)
+    first = table_mod.chunk_path(c, 0)
+    t0 = time.time()
+    while not first.exists():
+        assert proc.poll() is None, (tmp / "c1.log").read_text()[-3000:]
+        assert time.time() - t0 < 900, "the first chunk took more than 15 minutes"
+        time.sleep(0.1)
+    workers = _children(proc.pid)
+    proc.send_signal(signal.SIGKILL)      # its workers are in chunk 2 of 2
+    proc.wait()
+    log.close()
+    t0 = time.time()
+    while any(_alive(p) for p in workers) and time.time() - t0 < 15:
+        time.sleep(0.1)
+    left = [p for p in workers if _alive(p)]
+    killed = {"finished": table_mod.finished_chunks(c), "workers": workers, "left": left}
+    resume = subprocess.run(cmd(c, 2), env=sweep_env(1), capture_output=True, text=True,
+                            cwd=tmp, timeout=900)
+    one = subprocess.run(cmd(d, 1), env=sweep_env(1), capture_output=True, text=True, cwd=tmp,
+                         timeout=900)
+    other = subprocess.run(sweep_cmd(spec, d) + ["--engine", "mjx"], env=sweep_env(1),
+                           capture_output=True, text=True, cwd=tmp, timeout=300)
+    return {"c": c, "d": d, "killed": killed, "resume": resume, "one": one, "other": other,
+            "c_log": (tmp / "c1.log").read_text()}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2400)
+def test_mujoco_engine_killed_resumed_and_any_worker_count_give_one_table(mujoco_sweeps):
+    s = mujoco_sweeps
+    k = s["killed"]
+    assert "on 2 MuJoCo workers" in s["c_log"], s["c_log"][-2000:]
+    assert k["finished"] == {0}
+    # the workers (two, pinned) ended with their killed parent, within 15 s
+    assert len(k["workers"]) >= 2 and not k["left"], k
+    assert s["resume"].returncode == 0, s["resume"].stderr[-3000:]
+    assert "1/2 chunks already done, 1 to run" in s["resume"].stderr
+    assert s["one"].returncode == 0, s["one"].stderr[-3000:]
+    assert "on 1 MuJoCo worker" in s["one"].stderr
+    tc = table_mod.read_table(s["c"]).drop_columns(["chunk"])
+    td = table_mod.read_table(s["d"]).drop_columns(["chunk"])
+    assert tc.column_names == td.column_names
+    # one rollout's result depends on its inputs only (the controller restarts, PIQP set up
+    # afresh), so the same machine gives the same floats whichever worker ran it, after a
+    # kill or not: compared exactly
+    for name in tc.column_names:
+        np.testing.assert_array_equal(tc.column(name).to_numpy(zero_copy_only=False),
+                                      td.column(name).to_numpy(zero_copy_only=False),
+                                      err_msg=name)
+    for out in (s["c"], s["d"]):
+        assert __import__("json").loads((out / table_mod.MANIFEST).read_text())["engine"] == "mujoco"
+    # resuming the mujoco table with the other engine is refused, naming the engine
+    assert s["other"].returncode == 2
+    assert "engine = 'mujoco'" in s["other"].stderr and "--engine" in s["other"].stderr
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2400)
+def test_engines_agree_rollout_by_rollout(sweeps, mujoco_sweeps):
+    """The mujoco engine (C MuJoCo + PIQP) against the mjx engine (MJX + the JAX QP
+    solver) on the same spec: the same columns; barrier minima within 1 mm (the tolerance
+    of tests/test_mjx_closed_loop.py; measured within 0.03 mm here), the same falls,
+    violations and failed QPs."""
+    tm = table_mod.read_columns(mujoco_sweeps["c"])
+    tx = table_mod.read_columns(sweeps["a"])
+    assert sorted(tm) == sorted(tx)
+    assert tm["rollout"].tolist() == tx["rollout"].tolist() == [0, 1, 2, 3]
+    assert (tm["error"] == "").all() and (tx["error"] == "").all()
+    for name in ("barrier_min.left_fist", "barrier_min.right_fist", "barrier_min.torso_lean"):
+        np.testing.assert_allclose(tm[name], tx[name], atol=1e-3, rtol=0, err_msg=name)
+        np.testing.assert_array_equal(tm[name] < -1e-3, tx[name] < -1e-3)
+    for name in ("fell", "qp_failed", "control_steps", "perturb.norm", "poles.left_fist.p1"):
+        np.testing.assert_array_equal(tm[name], tx[name], err_msg=name)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_pool_worker_crash_and_hang_are_recorded_not_stalled(tmp_path):
+    """A worker killed mid-rollout is replaced and its rollout run again (the same result as
+    the uninterrupted run); with no retries left a killed or a hung (SIGSTOP) worker fails
+    only its rollout, with the reason in ``error``, and the chunk completes."""
+    import threading
+
+    import safewbc_jax
+    from safewbc_jax.sweeps import run as run_mod
+    from safewbc_jax.sweeps.pool import PoolExecutor
+    from safewbc_jax.sweeps.spec import load_spec
+
+    safewbc_jax.enable_x64()
+    spec_path = tmp_path / "tiny.toml"
+    spec_path.write_text(SPEC)
+    spec = load_spec(spec_path)
+    base, std, settings = run_mod.preflight(spec, check_poles=False)
+    params, push, dv, _ = run_mod.chunk_inputs(spec, base, settings, np.arange(2), spec.seed, std)
+    pool = PoolExecutor(spec, 1, retries=1, rollout_timeout=10.0, cache_dir=cache_dir())
+
+    def chunk_with(signal_no):
+        """The chunk, with ``signal_no`` sent to the worker while its first rollout runs
+        (from a thread: the pool runs here, in the thread that started its workers)."""
+        pool.start()
+        slot = pool.slots[0]
+
+        def send():
+            t0 = time.time()
+            while slot.task is None and time.time() - t0 < 60:
+                time.sleep(0.01)
+            time.sleep(0.2)
+            os.kill(slot.proc.pid, signal_no)
+
+        th = threading.Thread(target=send)
+        if signal_no is not None:
+            th.start()
+        cols = pool(spec, params, push, dv)
+        if signal_no is not None:
+            th.join(60)
+        return cols
+
+    try:
+        clean = chunk_with(None)
+        assert (clean["error"] == "").all() and not clean["fell"].any()
+        retried = chunk_with(signal.SIGKILL)       # replaced, rollout 0 run again
+        assert pool.restarts == 1
+        for name in clean:
+            np.testing.assert_array_equal(retried[name], clean[name], err_msg=name)
+        pool.retries = 0
+        crashed = chunk_with(signal.SIGKILL)
+        assert "SIGKILL" in crashed["error"][0] and crashed["error"][1] == ""
+        assert np.isnan(crashed["barrier_min.left_fist"][0]) and crashed["qp_solved"][0] == -1
+        assert crashed["barrier_min.left_fist"][1] == clean["barrier_min.left_fist"][1]
+        hung = chunk_with(signal.SIGSTOP)
+        assert "no result within 10 s" in hung["error"][0] and hung["error"][1] == ""
+        assert pool.restarts == 3
+    finally:
+        pool.close()

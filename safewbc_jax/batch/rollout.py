@@ -424,18 +424,13 @@ def default_chunk(backend: str | None = None, n_devices: int | None = None) -> i
     return CPU_CHUNK if backend == "cpu" and n_devices == 1 else None
 
 
-# the metric columns of a batch: metrics.finalize's, less the per-component tracking and
-# the torso pitch extremes (metrics.json of a single run has them)
-_SINGLE_RUN_ONLY = ("tracking_rms_components.", "torso_pitch_")
-
-
 def _finish(pl: Plant, final: Carry) -> dict:
-    """The final Carry (batched, numpy) -> flat metric columns, names as in metrics.json."""
+    """The final Carry (batched, numpy) -> flat metric columns, names as in metrics.json
+    (``metrics.table_columns``)."""
     out = metrics.finalize(final.tally.acc, final.plant, ~final.alive,
                            final.ctl.gait if pl.walking else None)
-    out = {k: v for k, v in out.items() if not k.startswith(_SINGLE_RUN_ONLY)}
-    out["fell_time_s"] = np.where(final.alive, np.nan, final.fell_step * pl.cfg.control_dt)
-    return {k: np.asarray(v) for k, v in out.items()}
+    return metrics.table_columns(out, np.where(final.alive, -1, final.fell_step),
+                                 pl.cfg.control_dt)
 
 
 def _pad(tree, batch: int, padded: int):

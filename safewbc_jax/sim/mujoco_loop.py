@@ -73,6 +73,95 @@ def load_at_stand():
     return ms, mc, robot.from_mujoco(mc), sm, d
 
 
+class SimRobot:
+    """The simulated robot of the loop (``models/scene.xml`` in C MuJoCo), loaded once and
+    reset for each rollout: the state map to the controller, the sensing (sole forces,
+    leg-on-leg contact), the motor commands, the push, the plant metrics. ``run`` and the
+    sweep workers (``sweeps.pool``) step it through ``step``."""
+
+    def __init__(self, motor_names, control_dt: float):
+        import mujoco
+
+        self.ms, mc, self.model, self.sm, self.d = load_at_stand()
+        self.n_sub = control_substeps(self.ms, control_dt)
+        if self.n_sub is None:
+            raise ValueError(f"control_dt {control_dt} must be a positive multiple of the "
+                             f"simulation step {self.ms.opt.timestep}")
+        self.control_dt = float(control_dt)
+        ms = self.ms
+        ids = foot_contact_ids(ms)
+        self.sole_geoms = dict(zip(("left", "right"), ids["sole_geoms"].tolist()))
+        self.floor_geom = ids["floor"]
+        self.leg_geoms = {s: set(g.tolist()) for s, g in zip(("left", "right"), ids["legs"])}
+        self.motor_ids = np.array([ms.actuator(n).id for n in motor_names])  # motor -> ctrl
+        self.sole_ids = ids["sole_sites"]
+        self.sole0 = self.d.site_xpos[self.sole_ids, :2].copy()
+        self.base_id = ms.body("base").id
+        self.loop_pairs = loop_site_pairs(ms)
+        self._key = ms.key("stand").id
+        self._mj = mujoco
+
+    def reset(self, perturb_v=None):
+        """Back to the stand keyframe, plus ``perturb_v`` (simulator nv) on the velocity, as
+        the batched rollouts start (``batch.rollout``)."""
+        mj, ms, d = self._mj, self.ms, self.d
+        mj.mj_resetDataKeyframe(ms, d, self._key)
+        mj.mj_forward(ms, d)
+        if perturb_v is not None:
+            d.qvel[:] += np.asarray(perturb_v, float)
+
+    def sense(self, t):
+        """(Measurement at time t, whether a leg touches the other leg)."""
+        f = _floor_and_leg_contacts(self.ms, self.d, self.sole_geoms, self.floor_geom,
+                                    self.leg_geoms)
+        q, v = self.sm.to_controller(self.d.qpos, self.d.qvel)
+        return Measurement(q, v, t, np.array([f["left"], f["right"]])), f["legs"]
+
+    def step(self, motor, push_force, k, plant, rec):
+        """Apply the motor torques and the push, advance one control period, sense step k's
+        outcome: returns (next Measurement, legs touching, rod loop residual, plant
+        metrics after ``metrics.plant_accumulate``)."""
+        d = self.d
+        d.ctrl[self.motor_ids] = motor
+        d.xfrc_applied[self.base_id, :3] = push_force
+        for _ in range(self.n_sub):
+            self._mj.mj_step(self.ms, d)
+        meas, legs = self.sense((k + 1) * self.control_dt)
+        loop_res = sim_loop_residual(self.ms, d, self.loop_pairs)
+        plant = metrics.plant_accumulate(plant, True, rec, d.site_xpos[self.sole_ids],
+                                         self.sole0, loop_res, legs)
+        return meas, legs, loop_res, plant
+
+
+def rollout(sim: SimRobot, ctl: Controller, n_steps: int, push: Push | None = None,
+            on_step=None, observer=None):
+    """One rollout of the deployment loop from the robot's present state (``sim.reset``
+    and ``ctl.start``/``ctl.restart`` before): per control step the measurement,
+    ``Controller.step``, the motor torques and the push, the physics, the plant metrics,
+    the fall test. ``observer(meas)`` runs right after each ``Controller.step`` (``run``);
+    ``on_step(k, meas, cmd, record, legs, loop_residual)`` after each step's physics
+    (``run``'s log). Both are outside ``Controller.step``'s timing.
+    Returns (fell, the step it fell at or -1, plant metrics)."""
+    plant = metrics.plant_init()
+    meas, _ = sim.sense(0.0)
+    for k in range(n_steps):
+        cmd = ctl.step(meas)
+        if observer is not None:
+            observer(meas)
+        hr = ctl.record
+        if hr is None:   # a measurement that could not enter the step (not from this loop)
+            return True, k, plant
+        rec = hr.step
+        force = force_at(push, rec.tau) if push is not None else 0.0
+        nxt, legs, loop_res, plant = sim.step(cmd.motor, force, k, plant, rec)
+        if on_step is not None:
+            on_step(k, meas, cmd, hr, legs, loop_res)
+        meas = nxt
+        if fallen(meas.q, meas.v):
+            return True, k, plant
+    return False, -1, plant
+
+
 def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None,
         observer=None):
     """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict with the
@@ -93,31 +182,16 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     The log's ``stance`` and ``missed_touchdowns`` at step k are the domain step k's QP ran
     in (the gait advanced from step k's measurement).
     """
-    import mujoco
-
     n_steps, settle, duration = schedule(scenario, cfg.duration, cfg.settle, cfg.control_dt)
-    ms, mc, model, sm, d = load_at_stand()
-    n_sub = control_substeps(ms, cfg.control_dt)
-    if n_sub is None:
-        raise ValueError(f"control_dt {cfg.control_dt} must be a positive multiple of the "
-                         f"simulation step {ms.opt.timestep}")
     ctl = Controller(scenario, params, cfg.control_dt, barrier=cfg.barrier_on, speed=cfg.speed,
                      settle=settle, duration=duration)
+    sim = SimRobot(ctl.motors.names, cfg.control_dt)
+    ms, model, d = sim.ms, sim.model, sim.d
     scenario, walking = ctl.scenario, ctl.walking
     if walking:
         from safewbc_jax.walking import diagnostics as walking_diag
 
         diag_fn = jax.jit(partial(walking_diag, model))
-    ids = foot_contact_ids(ms)
-    sole_geoms = dict(zip(("left", "right"), ids["sole_geoms"].tolist()))
-    floor_geom = ids["floor"]
-    leg_geoms = {s: set(g.tolist()) for s, g in zip(("left", "right"), ids["legs"])}
-    motor_ids = np.array([ms.actuator(n).id for n in ctl.motors.names])  # motor -> d.ctrl
-    sole_ids = ids["sole_sites"]
-    sole0 = d.site_xpos[sole_ids, :2].copy()
-    base_id = ms.body("base").id
-    loop_pairs = loop_site_pairs(ms)
-
     names = [o.name for o in scenario.outputs]
     hnames = [b.name for b in scenario.barriers + scenario.monitors]
     log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_qp", "t_solve", "latency",
@@ -127,40 +201,16 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         log[f"y_{nm}"], log[f"yd_{nm}"] = [], []
     for hn in hnames:
         log[f"h_{hn}"] = []
-    fell = False
     recorded = []
-    plant = metrics.plant_init()
     if progress is not None:
         progress(0, n_steps, "compiling")
-    compile_s = ctl.start(*sm.to_controller(d.qpos, d.qvel))
+    compile_s = ctl.start(*sim.sm.to_controller(d.qpos, d.qvel))
 
-    def sense(t):
-        f = _floor_and_leg_contacts(ms, d, sole_geoms, floor_geom, leg_geoms)
-        q, v = sm.to_controller(d.qpos, d.qvel)
-        return Measurement(q, v, t, np.array([f["left"], f["right"]])), f["legs"]
-
-    meas, _ = sense(0.0)
-    for k in range(n_steps):
-        cmd = ctl.step(meas)
-        if observer is not None:
-            observer(meas)
-        hr = ctl.record
-        if hr is None:   # a measurement that could not enter the step (not from this loop)
-            fell = True
-            break
+    def on_step(k, meas, cmd, hr, legs, loop_res):
         rec = hr.step
         fb = fallback_name(rec.fallback) if rec.ok else "held"
         if cfg.record_qps_every and k % cfg.record_qps_every == 0:
             recorded.append((k, ctl.last_qp(), int(rec.status), fb))
-        d.ctrl[motor_ids] = cmd.motor
-        d.xfrc_applied[base_id, :3] = (force_at(cfg.push, rec.tau) if cfg.push is not None
-                                       else 0.0)
-        for _ in range(n_sub):
-            mujoco.mj_step(ms, d)
-        meas, legs = sense((k + 1) * cfg.control_dt)
-        loop_res = sim_loop_residual(ms, d, loop_pairs)
-        plant = metrics.plant_accumulate(plant, True, rec, d.site_xpos[sole_ids], sole0,
-                                         loop_res, legs)
         log["t"].append(k * cfg.control_dt), log["tau"].append(float(rec.tau))
         log["u"].append(cmd.u), log["status"].append(int(rec.status))
         log["fallback"].append(fb)
@@ -176,13 +226,12 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
         log["alip"].append(np.asarray(diag_fn(hr.q, hr.v, hr.domain)) if walking
                            else np.zeros(0))
         log["leg_contact"].append(legs), log["loop_residual"].append(loop_res)
-        log["base_z"].append(float(d.xpos[base_id][2]))
+        log["base_z"].append(float(d.xpos[sim.base_id][2]))
         log["qpos"].append(d.qpos.copy())
         if progress is not None:
             progress(k + 1, n_steps, "standing" if rec.tau < 0 else "motion")
-        if fallen(meas.q, meas.v):
-            fell = True
-            break
+
+    fell, _, plant = rollout(sim, ctl, n_steps, cfg.push, on_step, observer)
     arrays = {k: np.asarray(v) for k, v in log.items()}
     arrays["compile_s"] = np.asarray(compile_s)
     if recorded:
@@ -195,7 +244,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     st = ctl.state
     flat = metrics.finalize(ctl.tally.acc, plant, fell, st.gait if walking else None)
     tau = arrays["tau"]
-    return arrays, dict(fell=fell, settle=settle, duration=duration, n_sub=n_sub,
+    return arrays, dict(fell=fell, settle=settle, duration=duration, n_sub=sim.n_sub,
                         duration_s=float(max(tau[-1], 0.0) + cfg.control_dt) if tau.size else 0.0,
                         steps_taken=int(st.gait.steps) if walking else 0, walking=walking,
                         sim_dt=float(ms.opt.timestep), torque_limit=np.asarray(model.torque_limit),

@@ -127,7 +127,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
               executor: Callable | None = None, progress: Callable | None = None,
               spec_text: str | None = None, max_chunks: int | None = None,
               check_poles: bool = True, hosts: int = 1, host_index: int = 0,
-              quiet: bool = False, desc: str | None = None, stream=None) -> SweepResult:
+              quiet: bool = False, desc: str | None = None, stream=None,
+              engine: str = "mjx", workers: int | None = None) -> SweepResult:
     """Run (or resume) the sweep into ``out``. ``executor(spec, params, push, perturb_v)``
     returns the metrics dict of a batch (default: the real ``run_batch``).
     ``max_chunks`` stops after that many chunks of this call (for notebooks and tests).
@@ -136,7 +137,12 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     ``quiet``; a ``progress`` callable instead receives every message and one line per
     chunk, and no bar is drawn.
     With ``hosts`` N > 1 this process runs the chunks k with k mod N = ``host_index`` (the
-    same command on N hosts sharing ``out`` runs the whole sweep once)."""
+    same command on N hosts sharing ``out`` runs the whole sweep once).
+    ``engine``: "mjx" (the batched MJX closed loop, ``batch.rollout``) or "mujoco" (a pool
+    of ``workers`` deployment loops, one per CPU, ``sweeps.pool``; None: one per CPU this
+    process may use); "auto" is resolved by ``pool.resolve_engine``. The engine is in the
+    manifest: a table is resumed only with the engine that began it."""
+    from safewbc_jax.sweeps import pool as pool_mod
     if not (hosts >= 1 and 0 <= host_index < hosts):
         raise ValueError(f"host index {host_index} of {hosts} hosts: expected 0 <= index < hosts")
     out = Path(out)
@@ -146,6 +152,13 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         raise ValueError(f"--batch must be >= 1, got {batch}")
     if seed < 0:
         raise ValueError(f"--seed must be >= 0, got {seed}")
+    asked = engine
+    engine = pool_mod.resolve_engine(engine)
+    if engine == "mujoco":
+        workers = pool_mod.check_workers(workers)
+    elif workers is not None:
+        raise ValueError(f"--workers {workers}: only the mujoco engine has workers, and "
+                         f"--engine {asked} runs mjx here (--engine mujoco)")
     say = progress if progress is not None else (lambda msg: None) if quiet else (
         lambda msg: print(msg, file=sys.stderr if stream is None else stream, flush=True))
     n = spec.n_rollouts
@@ -157,7 +170,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 "outputs": list(spec.outputs), "target": spec.target,
                 "violation_tol": spec.violation_tol, "repeats": spec.repeats,
                 "objective": list(spec.tune.get("objective", [])),
-                "safe_sets": list(spec.safe_sets)}
+                "safe_sets": list(spec.safe_sets), "engine": engine}
     base, std, settings = preflight(spec, seed, check_poles=check_poles)
     table_mod.open_manifest(out, manifest, spec_text)
     mine = {k for k in range(len(chunks)) if k % hosts == host_index}
@@ -177,19 +190,23 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         return SweepResult(out, n, len(chunks), 0, len(done), 0.0, float("nan"))
     if max_chunks is not None:
         todo = todo[:max_chunks]
-    execute = executor or real_executor()
+    own = executor is None and engine == "mujoco"
+    execute = (executor or (pool_mod.PoolExecutor(spec, workers) if own else real_executor()))
+    pads = getattr(execute, "pads", True)
     t0 = t_chunk = time.perf_counter()
     ran = 0
     chunk_times = []
     import jax
 
     devs = jax.devices()
-    key = (None if executor is not None else
+    key = (None if executor is not None or engine != "mjx" else
            (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt, batch,
             spec.safe_sets))
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
-        f"in {len(chunks)} chunks of {batch} on {len(devs)} device{'s' if len(devs) > 1 else ''} "
-        f"({devs[0].platform})" + ("" if key in _COMPILED else
+        f"in {len(chunks)} chunks of {batch} "
+        + (f"on {len(devs)} device{'s' if len(devs) > 1 else ''} ({devs[0].platform})"
+           if engine == "mjx" else f"on {workers} MuJoCo worker{'s' if workers > 1 else ''}")
+        + ("" if key in _COMPILED else
                                    "; the first chunk includes compilation"))
     # the bar: this process's rollouts, after those already in the table
     done_n = sum(chunks[j][1] - chunks[j][0] for j in done)
@@ -203,19 +220,22 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
             rollouts = np.arange(start, stop)
             params, push, dv, cols = chunk_inputs(spec, base, settings, rollouts, seed, std)
             m = stop - start
-            if m < batch:
+            if m < batch and pads:
                 params = jax.tree_util.tree_map(lambda x: _pad(x, batch), params)
                 push = {kk: _pad(v, batch) for kk, v in push.items()}
                 dv = _pad(dv, batch)
             metrics = execute(spec, params, push, dv)
             if key is not None:
                 _COMPILED.add(key)
+            rows = batch if pads else m
             for name, v in metrics.items():
                 v = np.asarray(v)
-                if v.shape[:1] != (batch,):
-                    raise RuntimeError(f"run_batch returned metric {name!r} of shape {v.shape}, "
-                                       f"expected ({batch},)")
+                if v.shape[:1] != (rows,):
+                    raise RuntimeError(f"the executor returned metric {name!r} of shape "
+                                       f"{v.shape}, expected ({rows},)")
                 cols[name] = v[:m]
+            if "error" not in cols:     # the mjx engine: a failure fails the whole chunk
+                cols["error"] = np.full(m, "", dtype=object)
             cols["chunk"] = np.full(m, k, np.int64)
             table_mod.write_chunk(out, k, cols, {"chunk": k, "start": start, "stop": stop,
                                                 "seed": seed,
@@ -240,5 +260,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 + (", first chunk with compilation" if len(chunk_times) == 1 else "") + ")")
     finally:
         bar.close()
+        if own:
+            execute.close()
     el = time.perf_counter() - t0
     return SweepResult(out, n, len(chunks), len(todo), len(done), el, ran / el if el > 0 else float("nan"))

@@ -79,17 +79,20 @@ def open_manifest(out: Path, manifest: dict, spec_text: str | None = None) -> di
         except json.JSONDecodeError as e:
             raise TableError(f"{path}: unreadable manifest ({e}); remove {out} or use another "
                              "--out") from None
-        same = all(old.get(k) == manifest.get(k)
-                   for k in ("fingerprint", "seed", "batch", "n_rollouts"))
+        # a table from before the engines was written by the mjx engine
+        old, new = {"engine": "mjx", **old}, {"engine": "mjx", **manifest}
+        keys = ("fingerprint", "seed", "batch", "n_rollouts", "engine")
+        same = all(old.get(k) == new.get(k) for k in keys)
         if not same and not finished_chunks(out):
             old = None   # nothing finished under the old plan: nothing to lose, start over
         for key, what in (("fingerprint", "a different spec"), ("seed", "another --seed"),
-                          ("batch", "another --batch"), ("n_rollouts", "a different plan")):
-            if old is not None and old.get(key) != manifest.get(key):
+                          ("batch", "another --batch"), ("n_rollouts", "a different plan"),
+                          ("engine", "another --engine")):
+            if old is not None and old.get(key) != new.get(key):
                 raise TableError(
                     f"{out} holds a sweep with {key} = {old.get(key)!r}, this one has "
-                    f"{manifest.get(key)!r} ({what}); resume with the same spec, --seed and "
-                    "--batch, or write to another --out")
+                    f"{new.get(key)!r} ({what}); resume with the same spec, --seed, "
+                    "--batch and --engine, or write to another --out")
         if old is not None:
             return old
     if not path.exists() and out.exists() and any(out.iterdir()) and not (out / CHUNKS).exists():

@@ -112,8 +112,8 @@ def _distribution(spec: SweepSpec, name: str):
 
 
 def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, executor=None,
-               progress=None, quiet=False) -> TuneResult:
-    """``progress``: a callable for the messages and each round's per-chunk lines (no bar);
+               progress=None, quiet=False, engine="mjx", workers=None) -> TuneResult:
+    """``engine``, ``workers``: each round's sweep's (``run_sweep``). ``progress``: a callable for the messages and each round's per-chunk lines (no bar);
     None: the messages on stderr and each round's sweep as a tqdm bar "[tune] round i/N"
     (``run_sweep``); ``quiet``: neither."""
     from safewbc_jax.params import apply_overrides, load_overrides, to_toml
@@ -186,7 +186,7 @@ def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, execut
         say(f"[tune] round {i + 1}: {len(cand)} candidates, poles in "
             + " x ".join(f"[{np.exp(lo[j]):.3g}, {np.exp(hi[j]):.3g}]" for j in range(r)))
         run_sweep(sub, rdir, batch=batch, seed=seed, executor=executor, progress=progress,
-                  check_poles=True, quiet=quiet,
+                  check_poles=True, quiet=quiet, engine=engine, workers=workers,
                   desc=f"[tune] round {i + 1}/{spec.tune['rounds']}:")
         man = json.loads((rdir / "sweep.json").read_text())
         cols = read_columns(rdir)

@@ -1,0 +1,336 @@
+"""The ``mujoco`` engine of ``safewbc sweep``: a pool of worker processes, one per core,
+each running whole rollouts with the deployment loop (``sim.mujoco_loop.rollout``: C
+MuJoCo around ``deploy.Controller``, PIQP), the code a robot runs.
+
+Each worker is pinned to one CPU, compiles the scenario's controller once
+(``Controller.start``; JAX's persistent compilation cache, when the parent has one,
+is shared) and then takes rollouts one at a time: reset the simulator to the stand
+keyframe plus the rollout's velocity perturbation, ``Controller.restart`` with its
+params (Theorem 1 at its own start), roll out, and send back its metric columns
+(``metrics.table_columns``: the columns the ``mjx`` engine writes). A rollout's result
+depends only on its inputs, not on the worker that ran it nor on the order.
+
+Failures never stall a chunk: a rollout that raises comes back with the reason; a worker
+that dies or sends nothing for ``rollout_timeout`` seconds is killed and replaced, and its
+rollout is run again (``retries`` times) and then recorded as failed with the reason in the
+``error`` column (its metrics NaN, counts -1). Workers end with the parent, also when it
+is killed (``PR_SET_PDEATHSIG``, and a check of the parent's pid once a second). Linux
+ties ``PR_SET_PDEATHSIG`` to the thread that started the worker: use a pool from one
+thread that outlives it (``run_sweep`` does, from the main thread).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+import traceback
+
+import numpy as np
+
+ENGINES = ("auto", "mjx", "mujoco")
+START_TIMEOUT_S = 1800.0      # a worker's import, compile and warm-up
+
+
+def available_cpus() -> list[int]:
+    """The CPUs this process may run on, in order."""
+    return sorted(os.sched_getaffinity(0))
+
+
+def check_workers(workers: int | None) -> int:
+    """The worker count to use (None: one per available CPU); raises ValueError naming
+    the count when it is below 1 or above the CPUs this process may run on."""
+    cpus = available_cpus()
+    if workers is None:
+        return len(cpus)
+    if int(workers) != workers or workers < 1:
+        raise ValueError(f"--workers {workers}: must be an integer >= 1")
+    if workers > len(cpus):
+        raise ValueError(f"--workers {workers}: this process may run on {len(cpus)} CPU(s) "
+                         f"({cpus}); one worker is pinned to each")
+    return int(workers)
+
+
+def _die_with_parent(parent_pid: int):
+    """Ask Linux to SIGKILL this process when its parent ends (prctl PR_SET_PDEATHSIG); the
+    worker loop also checks the parent's pid, where prctl is not available."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent_pid:        # the parent ended before prctl took effect
+        os._exit(1)
+
+
+def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
+    """A worker process (module docstring). ``job``: scenario, barrier, safe_sets,
+    duration, settle, control_dt, speed, cache_dir."""
+    _die_with_parent(parent_pid)
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
+    try:
+        import safewbc_jax
+
+        safewbc_jax.enable_x64()
+        import jax
+
+        if job.get("cache_dir"):
+            jax.config.update("jax_compilation_cache_dir", job["cache_dir"])
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+        from safewbc_jax import control_step, metrics, scenarios
+        from safewbc_jax.deploy import Controller
+        from safewbc_jax.sim.mujoco_loop import SimRobot, rollout
+
+        sc = scenarios.get_scenario(job["scenario"], job["barrier"], tuple(job["safe_sets"]))
+        dt = job["control_dt"]
+        n_steps, _, _ = control_step.schedule(sc, job["duration"], job["settle"], dt)
+        ctl = Controller(sc, sc.default_params(), dt, barrier=job["barrier"],
+                         speed=job["speed"], settle=job["settle"], duration=job["duration"])
+        sim = SimRobot(ctl.motors.names, dt)
+        sim.reset()
+        compile_s = ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
+        gait0 = ctl.state.gait if ctl.walking else None
+        template = metrics.table_columns(
+            metrics.finalize(ctl.tally.acc, metrics.plant_init(), False, gait0), -1, dt)
+        conn.send(("ready", compile_s, {k: np.asarray(v).dtype.str for k, v in template.items()}))
+    except Exception:  # noqa: BLE001
+        conn.send(("init-error", traceback.format_exc()))
+        return
+    while True:
+        if not conn.poll(1.0):
+            if os.getppid() != parent_pid:
+                os._exit(1)
+            continue
+        msg = conn.recv()
+        if msg is None:
+            return
+        i, params, push, dv = msg
+        try:
+            sim.reset(dv)
+            ctl.restart(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), params)
+            fell, fell_step, plant = rollout(sim, ctl, n_steps, push)
+            flat = metrics.finalize(ctl.tally.acc, plant, fell,
+                                    ctl.state.gait if ctl.walking else None)
+            conn.send(("done", i, metrics.table_columns(flat, fell_step, dt)))
+        except Exception as e:  # noqa: BLE001
+            conn.send(("failed", i, f"{type(e).__name__}: {e}"))
+
+
+class _Slot:
+    """One worker process and what it is doing."""
+
+    def __init__(self, ctx, job, cpu):
+        self.cpu = cpu
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker, args=(child, job, cpu, os.getpid()),
+                                daemon=True)
+        self.proc.start()
+        child.close()
+        self.ready = False
+        self.task = None           # rollout index in flight
+        self.since = time.monotonic()
+
+    def kill(self):
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(5)
+        self.conn.close()
+
+
+def _death_reason(proc) -> str:
+    code = proc.exitcode
+    if code is None:
+        return "worker did not exit"
+    if code < 0:
+        try:
+            return f"worker killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"worker killed by signal {-code}"
+    return f"worker exited with code {code}"
+
+
+class PoolExecutor:
+    """``run_sweep``'s executor for the ``mujoco`` engine: ``execute(spec, params, push,
+    perturb_v)`` -> metric columns of the chunk's rollouts (numpy, leading axis the
+    rollouts, plus ``error``: "" or why the rollout has no result). The workers start at
+    the first call and live until ``close``. ``pads`` False: the sweep does not pad its last
+    chunk for this engine."""
+
+    pads = False
+
+    def __init__(self, spec, workers: int | None = None, *, retries: int = 1,
+                 rollout_timeout: float | None = None, cache_dir: str | None = None):
+        self.spec = spec
+        self.n_workers = check_workers(workers)
+        self.retries = int(retries)
+        self.rollout_timeout = rollout_timeout
+        self.cache_dir = cache_dir
+        self.slots: list[_Slot] = []
+        self.dtypes: dict | None = None
+        self.compile_s: list[float] = []
+        self.restarts = 0
+
+    # --- workers
+    def _job(self) -> dict:
+        s = self.spec
+        if self.cache_dir is None:
+            import jax
+
+            self.cache_dir = getattr(jax.config, "jax_compilation_cache_dir", None)
+        return dict(scenario=s.scenario, barrier=s.barrier, safe_sets=list(s.safe_sets),
+                    duration=s.duration, settle=s.settle, control_dt=s.control_dt, speed=0.2,
+                    cache_dir=self.cache_dir)
+
+    def _spawn(self, cpu) -> _Slot:
+        import multiprocessing as mp
+
+        return _Slot(mp.get_context("spawn"), self._job(), cpu)
+
+    def _await_ready(self, slot: _Slot):
+        """Wait for a new worker's compile; raises RuntimeError with its traceback when it
+        cannot start (nothing of the sweep can run then)."""
+        if not slot.conn.poll(START_TIMEOUT_S):
+            slot.kill()
+            raise RuntimeError(f"a sweep worker did not start within {START_TIMEOUT_S:.0f} s")
+        try:
+            msg = slot.conn.recv()
+        except EOFError:
+            raise RuntimeError(f"a sweep worker ended while starting ({_death_reason(slot.proc)})"
+                               ) from None
+        if msg[0] != "ready":
+            slot.kill()
+            raise RuntimeError(f"a sweep worker could not start:\n{msg[1]}")
+        slot.ready = True
+        self.compile_s.append(float(msg[1]))
+        self.dtypes = msg[2]
+
+    def start(self):
+        if self.slots:
+            return
+        cpus = available_cpus()[:self.n_workers]
+        self.slots = [self._spawn(c) for c in cpus]
+        for s in self.slots:
+            self._await_ready(s)
+
+    def close(self):
+        for s in self.slots:
+            try:
+                s.conn.send(None)
+            except (OSError, BrokenPipeError):
+                pass
+        for s in self.slots:
+            s.proc.join(10)
+            s.kill()
+        self.slots = []
+
+    def worker_pids(self) -> list[int]:
+        return [s.proc.pid for s in self.slots]
+
+    def _timeout(self, n_steps: int) -> float:
+        if self.rollout_timeout is not None:
+            return float(self.rollout_timeout)
+        return 120.0 + 0.02 * n_steps          # 20 ms a control step: ~25x the measured
+
+    # --- a chunk
+    def __call__(self, spec, params, push: dict, perturb_v) -> dict:
+        import jax
+
+        from safewbc_jax import control_step, scenarios
+        from safewbc_jax.push import Push
+
+        self.start()
+        perturb_v = np.asarray(perturb_v, float)
+        m = perturb_v.shape[0]
+        leaves = jax.tree_util.tree_map(np.asarray, params)
+        sc = scenarios.get_scenario(spec.scenario, spec.barrier, tuple(spec.safe_sets))
+        n_steps, _, _ = control_step.schedule(sc, spec.duration, spec.settle, spec.control_dt)
+        timeout = self._timeout(n_steps)
+
+        def task(i):
+            p = jax.tree_util.tree_map(lambda a: a[i], leaves)
+            f = np.array([push["fx"][i], push["fy"][i], push["fz"][i]], float)
+            return (i, p, Push.single(f, float(push["at"][i]), float(push["duration"][i])),
+                    perturb_v[i])
+
+        todo = list(range(m))[::-1]            # popped from the end: in order
+        tries = [0] * m
+        results: dict[int, dict] = {}
+        errors: dict[int, str] = {}
+        from multiprocessing.connection import wait
+
+        while len(results) + len(errors) < m:
+            for s in self.slots:
+                if s.task is None and todo:
+                    i = todo.pop()
+                    s.task, s.since = i, time.monotonic()
+                    tries[i] += 1
+                    s.conn.send(task(i))
+            busy = [s for s in self.slots if s.task is not None]
+            ready = wait([s.conn for s in busy] + [s.proc.sentinel for s in busy], timeout=1.0)
+            now = time.monotonic()
+            for k, s in enumerate(list(self.slots)):
+                if s.task is None:
+                    continue
+                reason = None
+                if s.conn in ready:
+                    try:
+                        msg = s.conn.recv()
+                    except (EOFError, OSError):
+                        s.proc.join(5)
+                        reason = _death_reason(s.proc)
+                    else:
+                        if msg[0] == "done":
+                            results[msg[1]] = msg[2]
+                        else:                          # the rollout raised: its own reason
+                            errors[msg[1]] = msg[2]
+                        s.task = None
+                        continue
+                elif s.proc.sentinel in ready or not s.proc.is_alive():
+                    s.proc.join(5)
+                    reason = _death_reason(s.proc)
+                elif now - s.since > timeout:
+                    reason = f"no result within {timeout:.0f} s (worker killed)"
+                if reason is None:
+                    continue
+                i = s.task
+                s.kill()
+                if tries[i] <= self.retries:
+                    todo.append(i)
+                else:
+                    errors[i] = f"rollout {i} of the chunk: {reason}"
+                self.restarts += 1
+                new = self._spawn(s.cpu)
+                self.slots[k] = new
+                self._await_ready(new)
+        return self._columns(m, results, errors)
+
+    def _columns(self, m: int, results: dict, errors: dict) -> dict:
+        """Per-rollout results -> columns (m,); a failed rollout's metrics NaN (floats),
+        -1 (integers), False (flags), with its reason in ``error``."""
+        cols = {}
+        for name, dt in self.dtypes.items():
+            dt = np.dtype(dt)
+            fill = np.nan if dt.kind == "f" else (False if dt.kind == "b" else -1)
+            cols[name] = np.array([np.asarray(results[i][name]).item() if i in results else fill
+                                   for i in range(m)], dtype=dt)
+        cols["error"] = np.array([errors.get(i, "") for i in range(m)], dtype=object)
+        return cols
+
+
+def resolve_engine(engine: str) -> str:
+    """``--engine`` -> the engine that runs: "mjx" or "mujoco" as given; "auto": ``mjx`` on
+    an accelerator and ``AUTO_CPU_ENGINE`` on a CPU (README, "Sweeps on a CPU")."""
+    if engine not in ENGINES:
+        raise ValueError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
+    if engine != "auto":
+        return engine
+    import jax
+
+    return "mjx" if jax.default_backend() != "cpu" else AUTO_CPU_ENGINE
+
+
+# what "auto" runs on a CPU: the engine with the higher robot-steps/s per core in
+# benchmarks/sweep_engines.py on the 2-core development machine (README)
+AUTO_CPU_ENGINE = "mjx"
