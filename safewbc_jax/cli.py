@@ -49,6 +49,17 @@ def _compile_cache(args) -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+def _engine_args(p) -> None:
+    """--engine and --workers of ``sweep`` and ``tune-poles``."""
+    p.add_argument("--engine", choices=("auto", "mjx", "mujoco"), default="auto",
+                   help="mjx: batched MJX rollouts (JAX QP solver); mujoco: one deployment "
+                   "loop (C MuJoCo + PIQP) per CPU; auto: mjx on an accelerator, on a CPU "
+                   "the faster of the two as measured (README, 'Two engines')")
+    p.add_argument("--workers", type=_int_at_least(1), default=None,
+                   help="--engine mujoco: worker processes, one pinned to each CPU "
+                   "(default: one per CPU this process may use)")
+
+
 def _check_engine(args) -> None:
     """--workers against the CPUs, and --workers without --engine mujoco (before anything
     compiles)."""
@@ -227,13 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="this host's index (0-based, below --hosts)")
     p.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() "
                    "and take --hosts / --host-index from jax.process_count() / process_index()")
-    p.add_argument("--engine", choices=("auto", "mjx", "mujoco"), default="auto",
-                   help="mjx: batched MJX rollouts (JAX QP solver); mujoco: one deployment "
-                   "loop (C MuJoCo + PIQP) per CPU; auto: mjx on an accelerator, on a CPU "
-                   "the faster of the two as measured (README, 'Sweeps on a CPU')")
-    p.add_argument("--workers", type=_int_at_least(1), default=None,
-                   help="--engine mujoco: worker processes, one pinned to each CPU "
-                   "(default: one per CPU this process may use)")
+    _engine_args(p)
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
@@ -255,13 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=_int_at_least(1), default=None, help="rollouts per chunk")
     p.add_argument("--seed", type=_int_at_least(0), default=None,
                    help="seed of the perturbations")
-    p.add_argument("--engine", choices=("auto", "mjx", "mujoco"), default="auto",
-                   help="mjx: batched MJX rollouts (JAX QP solver); mujoco: one deployment "
-                   "loop (C MuJoCo + PIQP) per CPU; auto: mjx on an accelerator, on a CPU "
-                   "the faster of the two as measured (README, 'Sweeps on a CPU')")
-    p.add_argument("--workers", type=_int_at_least(1), default=None,
-                   help="--engine mujoco: worker processes, one pinned to each CPU "
-                   "(default: one per CPU this process may use)")
+    _engine_args(p)
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "

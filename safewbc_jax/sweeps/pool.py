@@ -321,7 +321,7 @@ class PoolExecutor:
 
 def resolve_engine(engine: str) -> str:
     """``--engine`` -> the engine that runs: "mjx" or "mujoco" as given; "auto": ``mjx`` on
-    an accelerator and ``AUTO_CPU_ENGINE`` on a CPU (README, "Sweeps on a CPU")."""
+    an accelerator and ``AUTO_CPU_ENGINE`` on a CPU (README, "Two engines")."""
     if engine not in ENGINES:
         raise ValueError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
     if engine != "auto":
