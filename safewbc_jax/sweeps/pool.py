@@ -66,7 +66,8 @@ def _die_with_parent(parent_pid: int):
 
 def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
     """A worker process (module docstring). ``job``: scenario, barrier, safe_sets,
-    duration, settle, control_dt, speed, cache_dir."""
+    duration, settle, control_dt, cache_dir (walking's speed: the Controller's default, as
+    the mjx engine's ``BatchConfig``'s)."""
     _die_with_parent(parent_pid)
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
@@ -87,14 +88,14 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
         dt = job["control_dt"]
         n_steps, _, _ = control_step.schedule(sc, job["duration"], job["settle"], dt)
         ctl = Controller(sc, sc.default_params(), dt, barrier=job["barrier"],
-                         speed=job["speed"], settle=job["settle"], duration=job["duration"])
+                         settle=job["settle"], duration=job["duration"])
         sim = SimRobot(ctl.motors.names, dt)
         sim.reset()
-        compile_s = ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
+        ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
         gait0 = ctl.state.gait if ctl.walking else None
         template = metrics.table_columns(
             metrics.finalize(ctl.tally.acc, metrics.plant_init(), False, gait0), -1, dt)
-        conn.send(("ready", compile_s, {k: np.asarray(v).dtype.str for k, v in template.items()}))
+        conn.send(("ready", n_steps, {k: np.asarray(v).dtype.str for k, v in template.items()}))
     except Exception:  # noqa: BLE001
         conn.send(("init-error", traceback.format_exc()))
         return
@@ -128,7 +129,6 @@ class _Slot:
                                 daemon=True)
         self.proc.start()
         child.close()
-        self.ready = False
         self.task = None           # rollout index in flight
         self.since = time.monotonic()
 
@@ -168,8 +168,8 @@ class PoolExecutor:
         self.rollout_timeout = rollout_timeout
         self.cache_dir = cache_dir
         self.slots: list[_Slot] = []
-        self.dtypes: dict | None = None
-        self.compile_s: list[float] = []
+        self.dtypes: dict | None = None     # the metric columns, from the first worker
+        self.n_steps: int | None = None     # control steps of a rollout, likewise
         self.restarts = 0
 
     # --- workers
@@ -180,7 +180,7 @@ class PoolExecutor:
 
             self.cache_dir = getattr(jax.config, "jax_compilation_cache_dir", None)
         return dict(scenario=s.scenario, barrier=s.barrier, safe_sets=list(s.safe_sets),
-                    duration=s.duration, settle=s.settle, control_dt=s.control_dt, speed=0.2,
+                    duration=s.duration, settle=s.settle, control_dt=s.control_dt,
                     cache_dir=self.cache_dir)
 
     def _spawn(self, cpu) -> _Slot:
@@ -202,9 +202,7 @@ class PoolExecutor:
         if msg[0] != "ready":
             slot.kill()
             raise RuntimeError(f"a sweep worker could not start:\n{msg[1]}")
-        slot.ready = True
-        self.compile_s.append(float(msg[1]))
-        self.dtypes = msg[2]
+        self.n_steps, self.dtypes = int(msg[1]), msg[2]
 
     def start(self):
         if self.slots:
@@ -225,9 +223,6 @@ class PoolExecutor:
             s.kill()
         self.slots = []
 
-    def worker_pids(self) -> list[int]:
-        return [s.proc.pid for s in self.slots]
-
     def _timeout(self, n_steps: int) -> float:
         if self.rollout_timeout is not None:
             return float(self.rollout_timeout)
@@ -237,16 +232,13 @@ class PoolExecutor:
     def __call__(self, spec, params, push: dict, perturb_v) -> dict:
         import jax
 
-        from safewbc_jax import control_step, scenarios
         from safewbc_jax.push import Push
 
         self.start()
         perturb_v = np.asarray(perturb_v, float)
         m = perturb_v.shape[0]
         leaves = jax.tree_util.tree_map(np.asarray, params)
-        sc = scenarios.get_scenario(spec.scenario, spec.barrier, tuple(spec.safe_sets))
-        n_steps, _, _ = control_step.schedule(sc, spec.duration, spec.settle, spec.control_dt)
-        timeout = self._timeout(n_steps)
+        timeout = self._timeout(self.n_steps)
 
         def task(i):
             p = jax.tree_util.tree_map(lambda a: a[i], leaves)

@@ -143,6 +143,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     process may use); "auto" is resolved by ``pool.resolve_engine``. The engine is in the
     manifest: a table is resumed only with the engine that began it."""
     from safewbc_jax.sweeps import pool as pool_mod
+
     if not (hosts >= 1 and 0 <= host_index < hosts):
         raise ValueError(f"host index {host_index} of {hosts} hosts: expected 0 <= index < hosts")
     out = Path(out)

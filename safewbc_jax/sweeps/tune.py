@@ -113,8 +113,9 @@ def _distribution(spec: SweepSpec, name: str):
 
 def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, executor=None,
                progress=None, quiet=False, engine="mjx", workers=None) -> TuneResult:
-    """``engine``, ``workers``: each round's sweep's (``run_sweep``). ``progress``: a callable for the messages and each round's per-chunk lines (no bar);
-    None: the messages on stderr and each round's sweep as a tqdm bar "[tune] round i/N"
+    """``engine``, ``workers``: each round's sweep's (``run_sweep``). ``progress``: a
+    callable for the messages and each round's per-chunk lines (no bar); None: the
+    messages on stderr and each round's sweep as a tqdm bar "[tune] round i/N"
     (``run_sweep``); ``quiet``: neither."""
     from safewbc_jax.params import apply_overrides, load_overrides, to_toml
     from safewbc_jax.sweeps import admissible
