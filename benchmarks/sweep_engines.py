@@ -13,7 +13,7 @@ difference, the falls).
     python benchmarks/sweep_engines.py [SPEC] [--duration S] [--batch B] [--chunks N]
         [--workers N] [--json]
 
-The default spec is sweeps/kalpha_poles.toml (arms, 4 s, batch 64); ``--duration``
+The default spec is sweeps/kalpha_poles.toml (arms, 10 s, batch 64); ``--duration``
 shortens its rollouts for a quicker figure (the step rate does not depend on it after
 the 1 s settle). Keep the machine otherwise idle: the engines take both cores.
 """
