@@ -55,26 +55,28 @@ def test_shipped_specs_are_valid():
 
 def test_kalpha_poles_spec_reaches_the_barrier(stand, ctrl_mj):
     """A pole sweep measures nothing unless its barrier acts. Along the arm reference of
-    ``sweeps/kalpha_poles.toml`` (paper eqs. 35-36: the stand pose, arm joints at their
-    start values plus the offsets), the left fist's h(q) (eq. 33, the barrier's own
-    function) must go below zero within the spec's duration. It stays above +40 mm for the
+    ``sweeps/kalpha_poles.toml`` (the scenario's own arm task reference, paper eqs. 35-36,
+    from its start data at the stand pose; the other joints held), the left fist's h(q)
+    (eq. 33, the barrier's own function) must go below zero within the spec's duration. It stays above +40 mm for the
     first 4 s (the fist goes down first): the spec's old 4 s duration swept a barrier that
     never acted. Pure kinematics on a 1 ms grid; the bounds are tens of mm from the
     computed values (h(0) = +50 mm, zero crossed at 5.6 s, -101 mm at 7.5 s)."""
     import jax
     import jax.numpy as jnp
 
-    from safewbc_jax import outputs, references, robot, scenarios
+    from safewbc_jax import control_step, robot, scenarios
 
     spec = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
     model = robot.from_mujoco(ctrl_mj)
     sc = scenarios.get_scenario(spec.scenario)
     fist = next(b for b in sc.barriers if b.name == spec.target)
+    arms = next(t for t in sc.tasks if t.name == "arms")
     q0 = jnp.asarray(stand[0])
-    idx = np.array([model.joint_qadr(j) for j in outputs.ARM_JOINTS])
+    start = control_step.start_data(model, sc, q0)
+    idx = np.array([model.joint_qadr(j) for j in arms.output.joints])
 
     def h(tau):
-        q = q0.at[idx].set(q0[idx] + references.arm_offsets(tau))
+        q = q0.at[idx].set(arms.reference(tau, start))
         return fist.h(model, q, fist.threshold)
 
     tau = np.arange(0.0, spec.duration + 1e-9, 1e-3)
