@@ -28,7 +28,7 @@ import numpy as np
 
 from safewbc_jax import control_step, metrics, paths, robot, scenarios
 from safewbc_jax.packing import FlatTree, Packer
-from safewbc_jax.solvers import reduce
+from safewbc_jax.solvers import policy, reduce
 from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
 from safewbc_jax.solvers.result import FALLBACK_FAILED, FALLBACK_RELAXED, fallback_name, failed
 from safewbc_jax.solvers.status import SolveStatus
@@ -309,7 +309,7 @@ class Controller:
                 F["meas"].unpack(meas, jnp))
             red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
             return (F["state"].pack(state, jnp), F["prep"].pack(prep, jnp),
-                    qp_packer.pack((qpm, red, rmap)))
+                    qp_packer.pack((qpm, red, rmap, policy.checks(red, jnp))))
 
         def conclude(fixed, tally, prep, sol):
             prep = F["prep"].unpack(prep, jnp)
@@ -404,7 +404,7 @@ class Controller:
             raise RuntimeError("Controller.prepare_flat before start(q, v)")
         flat_state = jnp.asarray(self._flat["state"].pack(state))
         new, _, packed = self._prepare(self._fixed, flat_state, self._well_formed(meas))
-        return (self._flat["state"].unpack(np.asarray(new)), *self._unpack_qp(packed))
+        return (self._flat["state"].unpack(np.asarray(new)), *self._unpack_qp(packed)[:3])
 
     def metrics(self) -> dict:
         """The controller-side metric columns so far (``metrics.finalize``)."""
@@ -438,10 +438,12 @@ class Controller:
                                      np.nan, np.nan)
             return self._command(self._last_u, None, "held", reason, t_in)
         self._state, prep, packed = self._prepare(self._fixed, self._state, flat_meas)
-        qpm, red, rmap = self._unpack_qp(packed)
+        qpm, red, rmap, checks = self._unpack_qp(packed)
         self._last_qp = qpm
         t1 = time.perf_counter()
-        res = self.solver.solve(red)                 # a SolveResult of the reduced QP
+        # a SolveResult of the reduced QP; PIQP's acceptance from the step's own checks
+        res = (self.solver.solve(red, checks=checks) if isinstance(self.solver, PiqpSolver)
+               else self.solver.solve(red))
         x = reduce.expand(res.x, rmap)               # all NaN where it failed
         usable = res.fallback != FALLBACK_FAILED and bool(np.all(np.isfinite(x)))
         if usable:

@@ -10,6 +10,8 @@ multipliers.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -320,3 +322,64 @@ def test_relax_jit_and_vmap():
     np.testing.assert_array_equal(np.asarray(xs), np.asarray(z[:, :N]))
     x_b, s_b = split_slack(z, batch)                  # leading batch dims, no vmap
     assert x_b.shape == (len(qps), N) and s_b.shape == (len(qps), MI)
+
+
+# ---------------------------------------------------------------- precomputed checks
+
+def test_precomputed_checks_match_the_policy():
+    """``policy.checks`` (computed once per QP, by the deployment's jitted step) and
+    ``residuals_checked`` give the residuals and the acceptance of ``policy.residuals``
+    and ``policy.scales``: at feasible, infeasible and non-finite x, with infinite and
+    absent (>= BIG) bounds, soft rows and a switched-off row, with and without equality
+    rows (the reduced QP has none). Residuals agree to 1e-12 relative (one
+    matrix-vector product ordered differently); the decisions exactly."""
+    from safewbc_jax.solvers import policy
+    from safewbc_jax.solvers.status import NUMERICAL, SOLVED
+
+    rng = np.random.default_rng(7)
+    for k in range(12):
+        qp, x0 = random_qp(rng, return_x0=True)
+        if k % 2:   # the reduced QP's form: no equality rows
+            qp = dataclasses.replace(qp, A=np.zeros((0, N)), b=np.zeros(0))
+        lb, ub, h, G = qp.lb.copy(), qp.ub.copy(), qp.h.copy(), qp.G.copy()
+        lb[0], ub[1] = -2e20, 3e20          # "absent" bounds (>= BIG in size)
+        G[3], h[3] = 0.0, 1e9               # a barrier row switched off
+        qp = dataclasses.replace(qp, lb=lb, ub=ub, G=G, h=h)
+        ch = policy.checks(qp, np)
+        ch_j = policy.checks(to_jax(qp), jnp)
+        for a, b in zip(ch, ch_j):
+            np.testing.assert_array_equal(np.asarray(b), a)
+        xs = [x0, x0 + 1e-3 * rng.normal(size=N), x0 + rng.normal(size=N)]
+        bad = [x0.copy() for _ in range(3)]
+        bad[0][5], bad[1][40], bad[2][70] = np.nan, np.inf, -np.inf
+        for x in xs + bad:
+            ref = policy.residuals(x, qp, np)[:3]
+            got = policy.residuals_checked(x, qp, ch)
+            for r, g in zip(ref, got):
+                if np.isfinite(r):
+                    assert abs(g - r) <= 1e-12 * (1.0 + abs(r)), (k, ref, got)
+            for tol in (1e-6, 1e-1):
+                s_ref, _ = policy.accept(x, qp, SOLVED, tol, np)
+                s_got, _ = policy.accept(x, qp, SOLVED, tol, np, checks=ch)
+                assert s_ref == s_got, (k, tol, ref, got)
+        assert policy.accept(bad[0], qp, SOLVED, 1e9, np, checks=ch)[0] == NUMERICAL
+
+
+def test_solve_with_checks_is_the_same_solve():
+    """``PiqpSolver.solve(qp, checks=policy.checks(qp))`` gives the SolveResult of
+    ``solve(qp)``, on solvable QPs and on a hard conflict (FAILED on both)."""
+    from safewbc_jax.solvers import policy
+
+    rng = np.random.default_rng(3)
+    qps = [random_qp(rng) for _ in range(3)]
+    conflict = dataclasses.replace(qps[0], G=np.vstack([qps[0].G, -qps[0].G[:1]]),
+                               h=np.concatenate([qps[0].h, -qps[0].h[:1] - 1.0]),
+                               soft=np.concatenate([np.zeros(MI), [0.0]]))
+    for qp in qps + [conflict]:
+        a = PiqpSolver(update=False).solve(qp)
+        b = PiqpSolver(update=False).solve(qp, checks=policy.checks(qp, np))
+        assert a.status == b.status and a.fallback == b.fallback
+        np.testing.assert_array_equal(a.x, b.x)
+        for f in ("eq_residual", "ineq_violation", "hard_violation"):
+            ra, rb = getattr(a, f), getattr(b, f)
+            assert (np.isnan(ra) and np.isnan(rb)) or abs(ra - rb) <= 1e-12 * (1 + abs(ra)), f

@@ -237,9 +237,14 @@ class PiqpSolver:
         self._nominal = _make_backend(self.backend, self.nominal_settings, self.update)
         self._relaxed = _make_backend(self.backend, self.settings, self.update)
 
-    def solve(self, qp: QP, initvals=None) -> SolveResult:
+    def solve(self, qp: QP, initvals=None, checks: policy.Checks | None = None) -> SolveResult:
+        """The policy's outcome for ``qp`` (class docstring). ``checks``: ``policy.checks``
+        of this QP computed before (the deployment's jitted step does); qp's arrays must
+        then be float64 numpy already (they are not converted), and the acceptance of the
+        QP as posed uses them (``policy.residuals_checked``)."""
         t0 = time.perf_counter_ns()
-        qp = qp_to_numpy(qp)
+        if checks is None:
+            qp = qp_to_numpy(qp)
         n, mi = qp.P.shape[0], qp.G.shape[0]
         nan_x = np.full(n, np.nan)
 
@@ -250,7 +255,7 @@ class PiqpSolver:
             self._nominal = _make_backend(self.backend, self.nominal_settings, self.update)
             x, status, iters = None, SolveStatus.NUMERICAL, 0
         x = nan_x if x is None else x
-        status, res = policy.accept(x, qp, status, self.feas_tol, np)
+        status, res = policy.accept(x, qp, status, self.feas_tol, np, checks=checks)
         nom = Attempt(x=x, status=status, res=res, max_slack=0.0, iterations=iters,
                       polished=False, polish_iterations=0)
         # accepted: nothing to relax (``finish`` without a relaxed attempt gives the same

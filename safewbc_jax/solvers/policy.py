@@ -77,13 +77,66 @@ def scales(qp: QP, xp=np):
     return eq_scale, in_scale
 
 
-def accept(x, qp: QP, status, feas_tol, xp=np, slack=None):
+class Checks(NamedTuple):
+    """The part of the acceptance of one QP that does not depend on x (``checks``): the
+    two scales of ``scales``, and every inequality of the QP as one block of rows,
+
+        rows x <= rhs,    rows = [G; -I; I],  rhs = [h; -lb; ub],
+
+    with ``soft_pen`` -inf on the soft rows of G and 0 on the others (hard rows and the
+    bounds), so that max(rows x - rhs + soft_pen) is the hard rows' violation. The
+    deployment's jitted step computes it with the QP (``xp`` = jax.numpy), and the host's
+    acceptance is then one matrix-vector product and three reductions
+    (``residuals_checked``) instead of the dozen small numpy operations of ``scales``
+    and ``residuals``."""
+
+    eq_scale: Any
+    in_scale: Any
+    rows: Any
+    rhs: Any
+    soft_pen: Any
+
+
+def checks(qp: QP, xp=np) -> Checks:
+    """``Checks`` of ``qp``."""
+    eq_scale, in_scale = scales(qp, xp)
+    n = qp.P.shape[-1]
+    eye = xp.eye(n, dtype=qp.G.dtype)
+    rows = xp.concatenate([qp.G, -eye, eye], axis=0)
+    rhs = xp.concatenate([qp.h, -qp.lb, qp.ub])
+    soft_pen = xp.concatenate([xp.where(qp.soft > 0, -xp.inf, 0.0), xp.zeros(2 * n)])
+    return Checks(eq_scale, in_scale, rows, rhs, soft_pen)
+
+
+def residuals_checked(x, qp: QP, ch: Checks):
+    """(eq, ineq, hard) of ``residuals`` for a host x and ``ch`` = ``checks(qp)``. A
+    non-finite x gives a NaN or +inf in ineq (each x_i is in two rows, +x_i - ub_i and
+    -x_i + lb_i: an infinite x_i makes one of them +inf or inf - inf), so that ineq's
+    test also rejects it; ``tests/test_piqp_path.py`` holds the two to each other."""
+    eq = float(np.abs(qp.A @ x - qp.b).max()) if qp.A.shape[0] else 0.0
+    v = ch.rows @ x
+    v -= ch.rhs
+    ineq = max(float(v.max()), 0.0) if v.size else 0.0
+    v += ch.soft_pen
+    hard = max(float(v.max()), 0.0) if v.size else 0.0
+    return eq, ineq, hard
+
+
+def accept(x, qp: QP, status, feas_tol, xp=np, slack=None, checks: Checks | None = None):
     """SOLVED stays SOLVED only where x is finite and its residuals pass (module
     docstring); ``slack`` (on G's rows) checks the relaxed QP's rows instead of G's.
+    ``checks`` (host only, without ``slack``): this QP's ``Checks``, computed before.
     Returns (status, (eq, ineq, hard)); on the host, where the solver did not report
     SOLVED, the residuals are not computed (NaN: ``finish`` never uses them then)."""
     if xp is not jnp and status != SOLVED:
         return status, (float("nan"),) * 3
+    if checks is not None:
+        eq, ineq, hard = residuals_checked(x, qp, checks)
+        # a NaN fails both comparisons: ineq is NaN or inf for a non-finite x
+        if status == SOLVED and not (eq <= feas_tol * checks.eq_scale
+                                     and ineq <= feas_tol * checks.in_scale):
+            status = NUMERICAL
+        return status, (eq, ineq, hard)
     eq_scale, in_scale = scales(qp, xp)
     eq, ineq, hard, chk = residuals(x, qp, xp, slack)
     good = xp.all(xp.isfinite(x)) & (eq <= feas_tol * eq_scale) & (chk <= feas_tol * in_scale)
@@ -168,4 +221,5 @@ def finish(nom: Attempt, rel: Attempt | None, xp=np) -> SolveResult:
                        polished=bool(polished), polish_iterations=int(kp))
 
 
-__all__ = ["residuals", "scales", "accept", "Attempt", "skipped", "decide", "finish"]
+__all__ = ["residuals", "scales", "Checks", "checks", "residuals_checked", "accept", "Attempt",
+           "skipped", "decide", "finish"]
