@@ -87,7 +87,7 @@ def chain_jacobian(model: RobotModel, q, kin=None):
     jrod = jnp.einsum("ni,nik->nk", u, ja - jb)
     rows = []
     for kind, i in _order(model):
-        rows.append(jrod[i] if kind == "rod" else jnp.zeros(model.nv, q.dtype).at[i].set(1.0))
+        rows.append(jrod[i] if kind == "rod" else jnp.asarray(np.eye(model.nv)[i], q.dtype))
     return jnp.stack(rows)
 
 

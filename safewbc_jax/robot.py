@@ -285,7 +285,11 @@ def _kinematics_of(model: RobotModel, q, bodies):
     if model.body_jtype[0] != FREE or model.body_parent[0] != -1:
         raise ValueError("the first body must carry the free joint")
     hb, _, hq = _hinges(model)
-    angles = jnp.zeros(nb, q.dtype).at[hb].set(q[hq])
+    # a gather with static indices (bodies without a hinge read the appended 0), not a
+    # scatter: it fuses with its consumers, and an ahead-of-time compiler takes it
+    slot = np.full(nb, len(hb))
+    slot[hb] = np.arange(len(hb))
+    angles = jnp.concatenate([q[hq], jnp.zeros(1, q.dtype)])[slot]
     local = model.body_rot @ _axis_angle_batch(model.jnt_axis, angles)  # fixed: axis 0 -> I
     local = jnp.concatenate([local, jnp.eye(3, dtype=q.dtype)[None]], axis=0)
     offset = jnp.concatenate([model.body_pos, jnp.zeros((1, 3), q.dtype)], axis=0)
@@ -317,15 +321,19 @@ def _dof_motion(model: RobotModel, xpos, xrot):
     gets velocity w_k x (x - o_k) + t_k per unit of v_k."""
     hb, hd, _ = _hinges(model)
     k0 = model.body_dadr[0]
-    eye = jnp.eye(3, dtype=xpos.dtype)
-    w = jnp.zeros((model.nv, 3), xpos.dtype)
-    w = w.at[k0 + 3:k0 + 6].set(xrot[0].T)  # free joint: body-frame angular velocity
-    w = w.at[hd].set(jnp.einsum("nij,nj->ni", xrot[hb], model.jnt_axis[hb]))
-    o = jnp.zeros((model.nv, 3), xpos.dtype)
-    o = o.at[k0 + 3:k0 + 6].set(jnp.broadcast_to(xpos[0], (3, 3)))
-    o = o.at[hd].set(xpos[hb])
-    t = jnp.zeros((model.nv, 3), xpos.dtype).at[k0:k0 + 3].set(eye)
-    return w, o, t
+    # rows gathered with static indices from [0; free joint's 3 rows; hinges' rows]: dofs
+    # of neither kind (the free joint's translations) read the leading zero row
+    slot = np.zeros(model.nv, int)
+    slot[k0 + 3:k0 + 6] = 1 + np.arange(3)
+    slot[hd] = 4 + np.arange(len(hd))
+    zero = jnp.zeros((1, 3), xpos.dtype)
+    # free joint: its rotation axes are the base's body-frame axes (MuJoCo's convention)
+    w = jnp.concatenate([zero, xrot[0].T,
+                         jnp.einsum("nij,nj->ni", xrot[hb], model.jnt_axis[hb])])[slot]
+    o = jnp.concatenate([zero, jnp.broadcast_to(xpos[0], (3, 3)), xpos[hb]])[slot]
+    t = np.zeros((model.nv, 3))
+    t[k0:k0 + 3] = np.eye(3)
+    return w, o, jnp.asarray(t, xpos.dtype)
 
 
 def point_jacobians(model: RobotModel, xpos, xrot, bodies, points):
@@ -558,7 +566,7 @@ def torso_euler_terms(model: RobotModel, q, v):
     theta = torso_euler(model, q)
     k0 = model.body_dadr[0]
     e, drift = _euler_rate_map(theta, v[k0 + 3:k0 + 6])
-    jac = jnp.zeros((3, model.nv), q.dtype).at[:, k0 + 3:k0 + 6].set(e)
+    jac = jnp.pad(e, ((0, 0), (k0 + 3, model.nv - k0 - 6)))
     return theta, jac, drift
 
 
