@@ -285,8 +285,7 @@ def _kinematics_of(model: RobotModel, q, bodies):
     if model.body_jtype[0] != FREE or model.body_parent[0] != -1:
         raise ValueError("the first body must carry the free joint")
     hb, _, hq = _hinges(model)
-    # a gather with static indices (bodies without a hinge read the appended 0), not a
-    # scatter: it fuses with its consumers, and an ahead-of-time compiler takes it
+    # a static-index gather (bodies without a hinge read the appended 0), not a scatter
     slot = np.full(nb, len(hb))
     slot[hb] = np.arange(len(hb))
     angles = jnp.concatenate([q[hq], jnp.zeros(1, q.dtype)])[slot]
@@ -331,8 +330,7 @@ def _dof_motion(model: RobotModel, xpos, xrot):
     w = jnp.concatenate([zero, xrot[0].T,
                          jnp.einsum("nij,nj->ni", xrot[hb], model.jnt_axis[hb])])[slot]
     o = jnp.concatenate([zero, jnp.broadcast_to(xpos[0], (3, 3)), xpos[hb]])[slot]
-    t = np.zeros((model.nv, 3))
-    t[k0:k0 + 3] = np.eye(3)
+    t = np.zeros((model.nv, 3)); t[k0:k0 + 3] = np.eye(3)  # noqa: E702
     return w, o, jnp.asarray(t, xpos.dtype)
 
 
