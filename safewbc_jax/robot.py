@@ -330,7 +330,8 @@ def _dof_motion(model: RobotModel, xpos, xrot):
     w = jnp.concatenate([zero, xrot[0].T,
                          jnp.einsum("nij,nj->ni", xrot[hb], model.jnt_axis[hb])])[slot]
     o = jnp.concatenate([zero, jnp.broadcast_to(xpos[0], (3, 3)), xpos[hb]])[slot]
-    t = np.zeros((model.nv, 3)); t[k0:k0 + 3] = np.eye(3)  # noqa: E702
+    t = np.zeros((model.nv, 3))
+    t[k0:k0 + 3] = np.eye(3)
     return w, o, jnp.asarray(t, xpos.dtype)
 
 
