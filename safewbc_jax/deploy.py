@@ -150,12 +150,21 @@ def check_measurement(m: Measurement, walking: bool, nq: int, nv: int) -> str:
         return f"malformed measurement: {e}"
 
 
-def check_barrier_poles(model, scenario, params, q, v):
+def check_barrier_poles(model, scenario, params, q, v, cache: dict | None = None):
     """Theorem 1 at the start state, before anything compiles: raises barriers.PoleError
     naming the barrier, the pole and its bound (``control_step.check_start_poles``; a
-    walking barrier is checked where its domain first starts)."""
+    walking barrier is checked where its domain first starts). ``cache``: a dict that
+    keeps each barrier's eta jitted for this q (``Controller.restart``, once per rollout
+    of a sweep: eager, the check costs ~0.5 s)."""
     for b in scenario.barriers:
-        eta = control_step.start_eta_fn(model, scenario, b, q)(v, params.threshold[b.name])
+        if cache is None:
+            eta_fn = control_step.start_eta_fn(model, scenario, b, q)
+        else:
+            key = (b.name, np.asarray(q).tobytes())
+            if key not in cache:
+                cache[key] = jax.jit(control_step.start_eta_fn(model, scenario, b, q))
+            eta_fn = cache[key]
+        eta = eta_fn(v, params.threshold[b.name])
         control_step.check_start_poles(b.name, np.asarray(eta)[None],
                                        np.asarray(params.poles[b.name])[None], batched=False)
 
@@ -231,12 +240,15 @@ class Controller:
         self.run_values = control_step.RunValues(jnp.asarray(settle), jnp.asarray(float(speed)),
                                                  jnp.asarray(t_half))
         self.start_data = self.compile_s = self._start_qv = None
+        self._eta_cache = {}         # restart's Theorem-1 check, jitted (shared by lanes)
         self._prepare = self._conclude = None
 
-    def start(self, q, v) -> float:
+    def start(self, q, v, warm_up: bool = True) -> float:
         """Check the start state and Theorem 1 (barriers.PoleError), measure the
-        references' start data, compile and warm up the step; returns (and keeps in
-        ``compile_s``) the seconds it took. Leaves the controller as ``reset`` does."""
+        references' start data, compile and warm up the step (``warm_up`` False: no
+        warm-up, the step compiles at its first call; ``sim.lockstep`` runs it vmapped
+        only); returns (and keeps in ``compile_s``) the seconds it took. Leaves the
+        controller as ``reset`` does."""
         q, v = np.asarray(q, float), np.asarray(v, float)
         reason = check_state(q, v, self.model.nq, self.model.nv)
         if reason != "ok":
@@ -251,7 +263,7 @@ class Controller:
         self._compile(q, v)
         self.reset()
         force = np.zeros(2)
-        for k in range(2):  # compiles, then the jit's fast path; at tau < 0 the gait stays
+        for k in range(2 if warm_up else 0):  # compiles, then the jit's fast path (tau < 0)
             self.step(Measurement(q, v, k * self.control_dt, force))
             self.flush()
         self.reset()
@@ -272,7 +284,8 @@ class Controller:
             raise ValueError(f"start state refused: {reason}")
         params = self.params if params is None else params
         if self.barrier:
-            check_barrier_poles(self.model, self.scenario, params, jnp.asarray(q), jnp.asarray(v))
+            check_barrier_poles(self.model, self.scenario, params, jnp.asarray(q), jnp.asarray(v),
+                                self._eta_cache)
         if not np.array_equal(q, self._start_qv[0]):
             self.start_data = control_step.start_data(self.model, self.scenario, jnp.asarray(q))
         self.params = params
@@ -280,6 +293,22 @@ class Controller:
                                                              self.run_values)))
         self._start_qv = (q, v)
         self.reset()
+
+    def lane(self) -> "Controller":
+        """Another controller of the same scenario and compiled step (no compile), with
+        its own PIQP solvers, counters and state, as ``start`` leaves them: the lanes of
+        ``sim.lockstep``, each ``restart``-ed with its own params and start state."""
+        import copy
+
+        if self._prepare is None:
+            raise RuntimeError("Controller.lane before start(q, v)")
+        other = copy.copy(self)
+        # a PiqpSolver copy shares nothing once ``reset`` (in ``other.reset``) has given it
+        # fresh PIQP backends
+        other.solver = (copy.copy(self.solver) if isinstance(self.solver, PiqpSolver)
+                        else copy.deepcopy(self.solver))
+        other.reset()
+        return other
 
     def _compile(self, q, v):
         """The jitted prepare (with the elimination) and conclude, on flat vectors: every
@@ -319,6 +348,7 @@ class Controller:
             return (F["tally"].pack(tally, jnp),
                     out_packer.pack((out.record, prep.q, prep.v, prep.domain)))
 
+        self._prepare_fn, self._conclude_fn = prepare, conclude   # unjitted: sim.lockstep
         self._prepare, self._conclude = jax.jit(prepare), jax.jit(conclude)
         self._unpack_qp, self._unpack_out = qp_packer.unpack, out_packer.unpack
         self._fixed = jnp.asarray(F["fixed"].pack(fixed))
@@ -418,26 +448,40 @@ class Controller:
             raise RuntimeError("Controller.step before start(q, v)")
         self.flush()               # the last step's metrics, if nobody ran them yet
         t_step = time.perf_counter()
+        flat_meas, reason = self._admit(meas)
+        if flat_meas is None:      # cannot enter the step: counted here
+            tally = self._flat["tally"].unpack(np.asarray(self._tally))
+            tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
+            self._tally = jnp.asarray(self._flat["tally"].pack(tally))
+            return self._command(self._last_u, None, "held", reason, t_in)
+        self._state, prep, packed = self._prepare(self._fixed, self._state, flat_meas)
+        return self._finish(prep, packed, reason, meas.t, t_in, t_step)
+
+    def _admit(self, meas: Measurement):
+        """The host side of a step before the jitted prepare: count it, check the
+        measurement. Returns (its flat vector, or None where it cannot enter the step;
+        "ok" or the reason it is refused)."""
         self.steps += 1
         reason = check_measurement(meas, self.walking, self.model.nq, self.model.nv)
         if reason == "ok" and self._prev_t is not None and not meas.t > self._prev_t:
             reason = f"t = {meas.t} does not advance (last step at {self._prev_t})"
-        flat_meas = self._well_formed(meas)   # None: it cannot enter the step
         if reason != "ok":
             self.bad_measurements += 1
             self._record = None
-            if flat_meas is None:   # cannot enter the step: counted here
-                tally = self._flat["tally"].unpack(np.asarray(self._tally))
-                tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
-                self._tally = jnp.asarray(self._flat["tally"].pack(tally))
-            else:                   # the step refuses it itself (and counts it, and records)
-                self._state, prep, _ = self._prepare(self._fixed, self._state, flat_meas)
-                self.last_times = (np.nan, np.nan)
-                if self.keep_metrics:
-                    self._pending = (prep, self._flat_sol(failed(self._nx)), None, None,
-                                     np.nan, np.nan)
+        return self._well_formed(meas), reason
+
+    def _finish(self, prep, packed, reason: str, t, t_in: float, t_step: float) -> Command:
+        """The host side of a step after the jitted prepare (its ``prep`` and packed QP):
+        PIQP on the reduced QP, the held-torque rule, the pending ``conclude``; a refused
+        measurement (``reason`` not "ok", which the jitted step refused too) holds the
+        last good torque. ``sim.lockstep`` calls it per lane with rows of a vmapped
+        prepare."""
+        if reason != "ok":
+            self.last_times = (np.nan, np.nan)
+            if self.keep_metrics:
+                self._pending = (prep, self._flat_sol(failed(self._nx)), None, None,
+                                 np.nan, np.nan)
             return self._command(self._last_u, None, "held", reason, t_in)
-        self._state, prep, packed = self._prepare(self._fixed, self._state, flat_meas)
         qpm, red, rmap, checks = self._unpack_qp(packed)
         self._last_qp = qpm
         t1 = time.perf_counter()
@@ -460,7 +504,7 @@ class Controller:
         self.qp_failed += res.fallback == FALLBACK_FAILED
         self.fallbacks += res.fallback == FALLBACK_RELAXED
         self._last_u = np.array(u)
-        self._prev_t = meas.t
+        self._prev_t = t
         return self._command(self._last_u, SolveStatus(int(res.status)),
                              fallback_name(res.fallback), "ok", t_in)
 

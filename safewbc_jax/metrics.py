@@ -157,12 +157,13 @@ def plant_accumulate(acc: PlantAcc, live, rec, soles, soles0_xy, loop_residual, 
     the start, the largest loop-closure residual (m), whether a leg touches the other.
     ``rec`` (the step's StepRecord) gives the domain: in single support the slip is the
     stance sole's, from where its step began; the swing clearance (left sole y minus
-    right sole y) counts in single support during the motion."""
+    right sole y) counts in single support during the motion. Every argument may carry
+    the same leading batch axes (``sim.lockstep`` accumulates its lanes in one call)."""
     single = rec.stance != 0
-    stance_xy = xp.where(rec.stance > 0, soles[0, :2], soles[1, :2])
-    slip = xp.where(single, xp.linalg.norm(stance_xy - rec.stance0[:2]),
-                    xp.max(xp.linalg.norm(soles[:, :2] - soles0_xy, axis=-1)))
-    clearance = soles[0, 1] - soles[1, 1]
+    stance_xy = xp.where((rec.stance > 0)[..., None], soles[..., 0, :2], soles[..., 1, :2])
+    slip = xp.where(single, xp.linalg.norm(stance_xy - rec.stance0[..., :2], axis=-1),
+                    xp.max(xp.linalg.norm(soles[..., :2] - soles0_xy, axis=-1), axis=-1))
+    clearance = soles[..., 0, 1] - soles[..., 1, 1]
     ss = live & (rec.tau >= 0) & single
     mx = lambda old, new: xp.where(live, xp.maximum(old, new), old)  # noqa: E731
     i = lambda c: xp.where(c, 1, 0).astype(np.int32)  # noqa: E731

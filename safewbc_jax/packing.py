@@ -39,8 +39,11 @@ class Packer:
         return jnp.concatenate([jnp.ravel(jnp.asarray(x, jnp.float64)) for x in leaves])
 
     def unpack(self, flat):
+        """numpy views of the leaves; leading axes of ``flat`` (a stack of packed vectors,
+        e.g. from a vmapped function) stay in front of each leaf's shape."""
         flat = np.asarray(flat)
-        out = [flat[a:b].reshape(shape) for a, b, shape in self._slices]
+        lead = flat.shape[:-1]
+        out = [flat[..., a:b].reshape(lead + shape) for a, b, shape in self._slices]
         return jax.tree_util.tree_unflatten(self.treedef, out)
 
 

@@ -62,8 +62,10 @@ def sweep_env(devices: int = 1) -> dict:
 
 
 def sweep_cmd(spec: Path, out: Path) -> list:
+    # the mjx engine unless a test appends another --engine (the last one counts): "auto"
+    # picks mujoco on a CPU
     return [sys.executable, "-m", "safewbc_jax.cli", "sweep", str(spec), "--out", str(out),
-            "--batch", str(BATCH)]
+            "--batch", str(BATCH), "--engine", "mjx"]
 
 
 @pytest.fixture(scope="module")
@@ -332,7 +334,9 @@ def test_pool_worker_crash_and_hang_are_recorded_not_stalled(tmp_path):
     spec = load_spec(spec_path)
     base, std, settings = run_mod.preflight(spec, check_poles=False)
     params, push, dv, _ = run_mod.chunk_inputs(spec, base, settings, np.arange(2), spec.seed, std)
-    pool = PoolExecutor(spec, 1, retries=1, rollout_timeout=10.0, cache_dir=cache_dir())
+    # lockstep=1: a group per rollout, so a crash fails one rollout and spares the other
+    pool = PoolExecutor(spec, 1, retries=1, rollout_timeout=10.0, cache_dir=cache_dir(),
+                        lockstep=1)
 
     def chunk_with(signal_no):
         """The chunk, with ``signal_no`` sent to the worker while its first rollout runs

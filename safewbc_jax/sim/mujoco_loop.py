@@ -41,23 +41,26 @@ class RunConfig:
 
 
 def _floor_and_leg_contacts(ms, d, sole_geoms, floor_geom, leg_geoms):
-    """Normal force (N) of each sole on the floor, and whether any geom of one leg touches
-    one of the other leg."""
+    """Normal force (N) of each sole on the floor (``mj_contactForce``, summed over that
+    sole's contacts in MuJoCo's order), and whether any geom of one leg touches one of
+    the other leg. ``leg_geoms``: {"left", "right"} -> array of geom ids. The contact
+    list is read as arrays (per-contact Python objects cost ~50 us a step)."""
     import mujoco
 
     force = {"left": 0.0, "right": 0.0}
-    legs = False
+    if d.ncon == 0:
+        return {**force, "legs": False}
+    g = d.contact.geom                      # (ncon, 2)
     f6 = np.zeros(6)
-    for i in range(d.ncon):
-        c = d.contact[i]
-        pair = {int(c.geom1), int(c.geom2)}
-        for side, g in sole_geoms.items():
-            if pair == {g, floor_geom}:
-                mujoco.mj_contactForce(ms, d, i, f6)
-                force[side] += abs(f6[0])
-        if (pair & leg_geoms["left"]) and (pair & leg_geoms["right"]):
-            legs = True
-    return {**force, "legs": legs}
+    for side, sole in sole_geoms.items():
+        hit = (((g[:, 0] == sole) & (g[:, 1] == floor_geom))
+               | ((g[:, 1] == sole) & (g[:, 0] == floor_geom)))
+        for i in np.flatnonzero(hit):
+            mujoco.mj_contactForce(ms, d, int(i), f6)
+            force[side] += abs(f6[0])
+    left = np.isin(g, leg_geoms["left"]).any(axis=1)
+    right = np.isin(g, leg_geoms["right"]).any(axis=1)
+    return {**force, "legs": bool(np.any(left & right))}
 
 
 def load_at_stand():
@@ -76,8 +79,9 @@ def load_at_stand():
 class SimRobot:
     """The simulated robot of the loop (``models/scene.xml`` in C MuJoCo), loaded once and
     reset for each rollout: the state map to the controller, the sensing (sole forces,
-    leg-on-leg contact), the motor commands, the push, the plant metrics. ``run`` and the
-    sweep workers (``sweeps.pool``) step it through ``step``."""
+    leg-on-leg contact), the motor commands, the push, the plant metrics. ``run`` steps
+    it through ``step``; the sweep workers' lanes (``sim.lockstep``: ``sibling``) through
+    ``advance``, with the plant metrics of all lanes in one call."""
 
     def __init__(self, motor_names, control_dt: float):
         import mujoco
@@ -92,7 +96,7 @@ class SimRobot:
         ids = foot_contact_ids(ms)
         self.sole_geoms = dict(zip(("left", "right"), ids["sole_geoms"].tolist()))
         self.floor_geom = ids["floor"]
-        self.leg_geoms = {s: set(g.tolist()) for s, g in zip(("left", "right"), ids["legs"])}
+        self.leg_geoms = {s: np.asarray(g) for s, g in zip(("left", "right"), ids["legs"])}
         self.motor_ids = np.array([ms.actuator(n).id for n in motor_names])  # motor -> ctrl
         self.sole_ids = ids["sole_sites"]
         self.sole0 = self.d.site_xpos[self.sole_ids, :2].copy()
@@ -117,18 +121,32 @@ class SimRobot:
         q, v = self.sm.to_controller(self.d.qpos, self.d.qvel)
         return Measurement(q, v, t, np.array([f["left"], f["right"]])), f["legs"]
 
-    def step(self, motor, push_force, k, plant, rec):
+    def sibling(self) -> "SimRobot":
+        """Another simulated robot on the same (read-only) MjModel with its own MjData at
+        the stand keyframe: the lanes of ``sim.lockstep`` share one model."""
+        import copy
+
+        other = copy.copy(self)
+        other.d = self._mj.MjData(self.ms)
+        other.reset()
+        return other
+
+    def advance(self, motor, push_force, k):
         """Apply the motor torques and the push, advance one control period, sense step k's
-        outcome: returns (next Measurement, legs touching, rod loop residual, plant
-        metrics after ``metrics.plant_accumulate``)."""
+        outcome: returns (next Measurement, legs touching, rod loop residual)."""
         d = self.d
         d.ctrl[self.motor_ids] = motor
         d.xfrc_applied[self.base_id, :3] = push_force
         for _ in range(self.n_sub):
             self._mj.mj_step(self.ms, d)
         meas, legs = self.sense((k + 1) * self.control_dt)
-        loop_res = sim_loop_residual(self.ms, d, self.loop_pairs)
-        plant = metrics.plant_accumulate(plant, True, rec, d.site_xpos[self.sole_ids],
+        return meas, legs, sim_loop_residual(self.ms, d, self.loop_pairs)
+
+    def step(self, motor, push_force, k, plant, rec):
+        """``advance``, then the plant metrics: returns (next Measurement, legs touching,
+        rod loop residual, plant metrics after ``metrics.plant_accumulate``)."""
+        meas, legs, loop_res = self.advance(motor, push_force, k)
+        plant = metrics.plant_accumulate(plant, True, rec, self.d.site_xpos[self.sole_ids],
                                          self.sole0, loop_res, legs)
         return meas, legs, loop_res, plant
 

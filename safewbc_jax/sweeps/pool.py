@@ -1,22 +1,25 @@
 """The ``mujoco`` engine of ``safewbc sweep``: a pool of worker processes, one per core,
-each running whole rollouts with the deployment loop (``sim.mujoco_loop.rollout``: C
-MuJoCo around ``deploy.Controller``, PIQP), the code a robot runs.
+each running whole rollouts with the deployment controller (``deploy.Controller``, PIQP)
+around C MuJoCo, several side by side (``sim.lockstep``: each rollout its own
+Controller lane and MjData, the jitted step vmapped over the lanes).
 
 Each worker is pinned to one CPU, compiles the scenario's controller once
-(``Controller.start``; JAX's persistent compilation cache, when the parent has one,
-is shared) and then takes rollouts one at a time: reset the simulator to the stand
-keyframe plus the rollout's velocity perturbation, ``Controller.restart`` with its
-params (Theorem 1 at its own start), roll out, and send back its metric columns
-(``metrics.table_columns``: the columns the ``mjx`` engine writes). A rollout's result
-depends only on its inputs, not on the worker that ran it nor on the order.
+(``Controller.start`` and ``Lockstep.warm_up``; JAX's persistent compilation cache, when
+the parent has one, is shared) and then takes groups of up to ``lockstep`` rollouts (a
+chunk is split into groups by its size alone): per rollout, reset its simulator to the
+stand keyframe plus its velocity perturbation, ``Controller.restart`` with its params
+(Theorem 1 at its own start), roll the group out, and send back each rollout's metric
+columns (``metrics.table_columns``: the columns the ``mjx`` engine writes). A rollout's
+result depends only on its inputs and its group's width, not on the worker that ran it
+nor on the order.
 
 Failures never stall a chunk: a rollout that raises comes back with the reason; a worker
-that dies or sends nothing for ``rollout_timeout`` seconds is killed and replaced, and its
-rollout is run again (``retries`` times) and then recorded as failed with the reason in the
-``error`` column (its metrics NaN, counts -1). Workers end with the parent, also when it
-is killed (``PR_SET_PDEATHSIG``, and a check of the parent's pid once a second). Linux
-ties ``PR_SET_PDEATHSIG`` to the thread that started the worker: use a pool from one
-thread that outlives it (``run_sweep`` does, from the main thread).
+that dies or sends nothing for ``rollout_timeout`` seconds per rollout of its group is
+killed and replaced, and its group is run again (``retries`` times) and then recorded as
+failed with the reason in the ``error`` column (metrics NaN, counts -1). Workers end with
+the parent, also when it is killed (``PR_SET_PDEATHSIG``, and a check of the parent's pid
+once a second). Linux ties ``PR_SET_PDEATHSIG`` to the thread that started the worker:
+use a pool from one thread that outlives it (``run_sweep`` does, from the main thread).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import traceback
 import numpy as np
 
 ENGINES = ("auto", "mjx", "mujoco")
+LOCKSTEP = 16                 # rollouts a worker runs side by side (sim.lockstep)
 START_TIMEOUT_S = 1800.0      # a worker's import, compile and warm-up
 
 
@@ -82,7 +86,8 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
         from safewbc_jax import control_step, metrics, scenarios
         from safewbc_jax.deploy import Controller
-        from safewbc_jax.sim.mujoco_loop import SimRobot, rollout
+        from safewbc_jax.sim.lockstep import Lockstep
+        from safewbc_jax.sim.mujoco_loop import SimRobot
 
         sc = scenarios.get_scenario(job["scenario"], job["barrier"], tuple(job["safe_sets"]))
         dt = job["control_dt"]
@@ -91,7 +96,9 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
                          settle=job["settle"], duration=job["duration"])
         sim = SimRobot(ctl.motors.names, dt)
         sim.reset()
-        ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
+        ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), warm_up=False)
+        lock = Lockstep(ctl, sim, job["lockstep"])
+        lock.warm_up()
         gait0 = ctl.state.gait if ctl.walking else None
         template = metrics.table_columns(
             metrics.finalize(ctl.tally.acc, metrics.plant_init(), False, gait0), -1, dt)
@@ -107,16 +114,15 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
         msg = conn.recv()
         if msg is None:
             return
-        i, params, push, dv = msg
+        g, tasks = msg
         try:
-            sim.reset(dv)
-            ctl.restart(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), params)
-            fell, fell_step, plant = rollout(sim, ctl, n_steps, push)
-            flat = metrics.finalize(ctl.tally.acc, plant, fell,
-                                    ctl.state.gait if ctl.walking else None)
-            conn.send(("done", i, metrics.table_columns(flat, fell_step, dt)))
-        except Exception as e:  # noqa: BLE001
-            conn.send(("failed", i, f"{type(e).__name__}: {e}"))
+            res = lock.run(tasks, n_steps)
+            out = [("done", metrics.table_columns(r[3], r[2], dt)) if r[0] == "done" else r
+                   for r in res]
+        except Exception as e:  # noqa: BLE001 - the group's rollouts fail, with the reason
+            traceback.print_exc()     # to the sweep's stderr: the why of the failure
+            out = [("failed", f"{type(e).__name__}: {e}")] * len(tasks)
+        conn.send(("done", g, out))
 
 
 class _Slot:
@@ -161,8 +167,12 @@ class PoolExecutor:
     pads = False
 
     def __init__(self, spec, workers: int | None = None, *, retries: int = 1,
-                 rollout_timeout: float | None = None, cache_dir: str | None = None):
+                 rollout_timeout: float | None = None, cache_dir: str | None = None,
+                 lockstep: int = LOCKSTEP):
+        if int(lockstep) != lockstep or lockstep < 1:
+            raise ValueError(f"lockstep {lockstep}: must be an integer >= 1")
         self.spec = spec
+        self.lockstep = int(lockstep)
         self.n_workers = check_workers(workers)
         self.retries = int(retries)
         self.rollout_timeout = rollout_timeout
@@ -181,7 +191,7 @@ class PoolExecutor:
             self.cache_dir = getattr(jax.config, "jax_compilation_cache_dir", None)
         return dict(scenario=s.scenario, barrier=s.barrier, safe_sets=list(s.safe_sets),
                     duration=s.duration, settle=s.settle, control_dt=s.control_dt,
-                    cache_dir=self.cache_dir)
+                    cache_dir=self.cache_dir, lockstep=self.lockstep)
 
     def _spawn(self, cpu) -> _Slot:
         import multiprocessing as mp
@@ -223,10 +233,11 @@ class PoolExecutor:
             s.kill()
         self.slots = []
 
-    def _timeout(self, n_steps: int) -> float:
+    def _timeout(self, n_steps: int, rollouts: int) -> float:
+        """Seconds a worker may take for a group of ``rollouts`` run in lockstep."""
         if self.rollout_timeout is not None:
-            return float(self.rollout_timeout)
-        return 120.0 + 0.02 * n_steps          # 20 ms a control step: ~25x the measured
+            return float(self.rollout_timeout) * rollouts
+        return 120.0 + 0.02 * n_steps * rollouts   # 20 ms a robot-step: ~25x the measured
 
     # --- a chunk
     def __call__(self, spec, params, push: dict, perturb_v) -> dict:
@@ -238,16 +249,18 @@ class PoolExecutor:
         perturb_v = np.asarray(perturb_v, float)
         m = perturb_v.shape[0]
         leaves = jax.tree_util.tree_map(np.asarray, params)
-        timeout = self._timeout(self.n_steps)
 
         def task(i):
             p = jax.tree_util.tree_map(lambda a: a[i], leaves)
             f = np.array([push["fx"][i], push["fy"][i], push["fz"][i]], float)
-            return (i, p, Push.single(f, float(push["at"][i]), float(push["duration"][i])),
+            return (p, Push.single(f, float(push["at"][i]), float(push["duration"][i])),
                     perturb_v[i])
 
-        todo = list(range(m))[::-1]            # popped from the end: in order
-        tries = [0] * m
+        # the chunk's lockstep groups: a function of the chunk alone (not of the worker
+        # count), so a rollout is always computed in the same group
+        groups = [g.tolist() for g in np.array_split(np.arange(m), -(-m // self.lockstep))]
+        todo = list(range(len(groups)))[::-1]      # popped from the end: in order
+        tries = [0] * len(groups)
         results: dict[int, dict] = {}
         errors: dict[int, str] = {}
         from multiprocessing.connection import wait
@@ -255,10 +268,10 @@ class PoolExecutor:
         while len(results) + len(errors) < m:
             for s in self.slots:
                 if s.task is None and todo:
-                    i = todo.pop()
-                    s.task, s.since = i, time.monotonic()
-                    tries[i] += 1
-                    s.conn.send(task(i))
+                    g = todo.pop()
+                    s.task, s.since = g, time.monotonic()
+                    tries[g] += 1
+                    s.conn.send((g, [task(i) for i in groups[g]]))
             busy = [s for s in self.slots if s.task is not None]
             ready = wait([s.conn for s in busy] + [s.proc.sentinel for s in busy], timeout=1.0)
             now = time.monotonic()
@@ -273,25 +286,27 @@ class PoolExecutor:
                         s.proc.join(5)
                         reason = _death_reason(s.proc)
                     else:
-                        if msg[0] == "done":
-                            results[msg[1]] = msg[2]
-                        else:                          # the rollout raised: its own reason
-                            errors[msg[1]] = msg[2]
+                        for i, r in zip(groups[msg[1]], msg[2]):
+                            if r[0] == "done":
+                                results[i] = r[1]
+                            else:                      # the rollout raised: its own reason
+                                errors[i] = r[1]
                         s.task = None
                         continue
                 elif s.proc.sentinel in ready or not s.proc.is_alive():
                     s.proc.join(5)
                     reason = _death_reason(s.proc)
-                elif now - s.since > timeout:
-                    reason = f"no result within {timeout:.0f} s (worker killed)"
+                elif now - s.since > (limit := self._timeout(self.n_steps, len(groups[s.task]))):
+                    reason = f"no result within {limit:.0f} s (worker killed)"
                 if reason is None:
                     continue
-                i = s.task
+                g = s.task
                 s.kill()
-                if tries[i] <= self.retries:
-                    todo.append(i)
+                if tries[g] <= self.retries:
+                    todo.append(g)
                 else:
-                    errors[i] = f"rollout {i} of the chunk: {reason}"
+                    for i in groups[g]:
+                        errors[i] = f"rollout {i} of the chunk: {reason}"
                 self.restarts += 1
                 new = self._spawn(s.cpu)
                 self.slots[k] = new
@@ -323,6 +338,7 @@ def resolve_engine(engine: str) -> str:
     return "mjx" if jax.default_backend() != "cpu" else AUTO_CPU_ENGINE
 
 
-# what "auto" runs on a CPU: the engine with the higher robot-steps/s per core in
-# benchmarks/sweep_engines.py on the 2-core development machine (README)
-AUTO_CPU_ENGINE = "mjx"
+# what "auto" runs on a CPU: the engine with the higher robot-steps/s in
+# benchmarks/sweep_engines.py on the 2-core development machine (README: since the
+# lockstep workers, mujoco 1.24x mjx)
+AUTO_CPU_ENGINE = "mujoco"

@@ -172,6 +172,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 "violation_tol": spec.violation_tol, "repeats": spec.repeats,
                 "objective": list(spec.tune.get("objective", [])),
                 "safe_sets": list(spec.safe_sets), "engine": engine}
+    if engine == "mujoco":      # rollouts side by side per worker: rounding depends on it
+        manifest["lockstep"] = pool_mod.LOCKSTEP
     base, std, settings = preflight(spec, seed, check_poles=check_poles)
     table_mod.open_manifest(out, manifest, spec_text)
     mine = {k for k in range(len(chunks)) if k % hosts == host_index}

@@ -81,13 +81,17 @@ def open_manifest(out: Path, manifest: dict, spec_text: str | None = None) -> di
                              "--out") from None
         # a table from before the engines was written by the mjx engine
         old, new = {"engine": "mjx", **old}, {"engine": "mjx", **manifest}
-        keys = ("fingerprint", "seed", "batch", "n_rollouts", "engine")
+        for m in (old, new):   # a mujoco table from before sim.lockstep ran one at a time
+            if m["engine"] == "mujoco":
+                m.setdefault("lockstep", 1)
+        keys = ("fingerprint", "seed", "batch", "n_rollouts", "engine", "lockstep")
         same = all(old.get(k) == new.get(k) for k in keys)
         if not same and not finished_chunks(out):
             old = None   # nothing finished under the old plan: nothing to lose, start over
         for key, what in (("fingerprint", "a different spec"), ("seed", "another --seed"),
                           ("batch", "another --batch"), ("n_rollouts", "a different plan"),
-                          ("engine", "another --engine")):
+                          ("engine", "another --engine"),
+                          ("lockstep", "another lockstep width: another version of the engine")):
             if old is not None and old.get(key) != new.get(key):
                 raise TableError(
                     f"{out} holds a sweep with {key} = {old.get(key)!r}, this one has "

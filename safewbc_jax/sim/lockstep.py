@@ -1,0 +1,149 @@
+"""Several deployment loops in lockstep on one core: the ``mujoco`` sweep engine's worker.
+
+``mujoco_loop.rollout`` runs one robot: per control step one call of the deployed jitted
+step, whose cost on a CPU is mostly XLA's per-kernel runtime, not arithmetic. A worker
+that runs ``width`` rollouts side by side pays that runtime once per step for all of
+them: the same jitted functions of ``deploy.Controller`` (its unjitted ``prepare`` and
+``conclude``), vmapped over the lanes. Everything else is each lane's own ``Controller``
+(``Controller.lane``: the measurement checks of ``_admit``, PIQP and the held-torque rule
+of ``_finish``, its own PIQP solvers) and its own ``SimRobot`` (``SimRobot.sibling``: one
+MjModel, one MjData per lane), so a lane runs what ``mujoco_loop.rollout`` runs, step by
+step:
+
+    measurement -> Controller._admit -> [prepare, vmapped] -> Controller._finish (PIQP)
+    -> [conclude, vmapped] -> push -> SimRobot.advance -> plant metrics -> fall test
+
+A lane whose robot fell, or whose rollout raised, stops (its row of the vmapped calls
+is still computed, and ignored); unused lanes (fewer rollouts than ``width``) likewise.
+Lane results agree with ``mujoco_loop.rollout`` to rounding (the vmapped XLA kernels are
+not the single-robot ones; ``tests/test_sweeps_rollouts.py`` holds them to it), and a
+lane's result does not depend on the other lanes.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import numpy as np
+
+from safewbc_jax import metrics
+from safewbc_jax.control_step import fallen
+from safewbc_jax.deploy import Controller
+from safewbc_jax.push import force_at
+from safewbc_jax.sim.mujoco_loop import SimRobot
+from safewbc_jax.solvers.result import failed
+
+
+class Lockstep:
+    """``width`` lanes of one started ``Controller`` (``leader``) and its ``SimRobot``;
+    ``run`` rolls out up to ``width`` rollouts at once. ``compile_s``: the seconds
+    ``warm_up`` took (the vmapped step's compile)."""
+
+    def __init__(self, leader: Controller, sim: SimRobot, width: int):
+        if int(width) != width or width < 1:
+            raise ValueError(f"lockstep width {width}: must be an integer >= 1")
+        self.width = int(width)
+        self.leader, self.sim = leader, sim
+        self.lanes = [leader.lane() for _ in range(self.width)]
+        self.sims = [sim.sibling() for _ in range(self.width)]
+        self._vprep = jax.jit(jax.vmap(leader._prepare_fn))
+        self._vconc = jax.jit(jax.vmap(leader._conclude_fn))
+        self.compile_s = None
+
+    def warm_up(self) -> float:
+        """Compile the vmapped step with one step of every lane at the stand."""
+        t0 = time.perf_counter()
+        self.run([None] * self.width, 1)
+        self.compile_s = time.perf_counter() - t0
+        return self.compile_s
+
+    def run(self, tasks: list, n_steps: int) -> list:
+        """Roll out ``tasks`` (each (params, push or None, perturb_v or None), or None to
+        leave the lane at the stand with the leader's params) for ``n_steps`` control
+        steps. Returns, per task, ("done", fell, fell step or -1, the finalized metric
+        columns, ``metrics.finalize``) or ("failed", reason)."""
+        W, n = self.width, len(tasks)
+        if n > W:
+            raise ValueError(f"{n} rollouts for a lockstep of width {W}")
+        lanes, sims = self.lanes, self.sims
+        out = [None] * n
+        live = np.zeros(W, bool)
+        meas = [None] * W
+        for i in range(W):
+            t = tasks[i] if i < n else None
+            try:
+                params, dv = (None, None) if t is None else (t[0], t[2])
+                sims[i].reset(dv)
+                lanes[i].restart(*sims[i].sm.to_controller(sims[i].d.qpos, sims[i].d.qvel),
+                                 self.leader.params if params is None else params)
+                meas[i] = sims[i].sense(0.0)[0]
+                live[i] = i < n
+            except Exception as e:  # noqa: BLE001 - this rollout fails, the others run
+                out[i] = ("failed", f"{type(e).__name__}: {e}")
+                lanes[i].restart(*self.leader._start_qv)   # a valid row for the vmapped calls
+                sims[i].reset()
+                meas[i] = sims[i].sense(0.0)[0]
+        fixed = np.stack([np.asarray(lane._fixed) for lane in lanes])
+        state = np.stack([np.asarray(lane._state) for lane in lanes])
+        tally = np.stack([np.asarray(lane._tally) for lane in lanes])
+        flat = np.stack([lane._well_formed(m) for lane, m in zip(lanes, meas)])
+        plant = jax.tree_util.tree_map(lambda *a: np.stack(a),
+                                       *[metrics.plant_init() for _ in range(W)])
+        sole0 = np.stack([s.sole0 for s in sims])
+        sole_ids = self.sim.sole_ids
+        loop_res, legs = np.zeros(W), np.zeros(W, bool)
+        fell_step = np.full(W, -1)
+        pushes = [None if i >= n or tasks[i] is None else tasks[i][1] for i in range(W)]
+        no_sol = self.leader._flat_sol(failed(self.leader._nx))
+        for k in range(n_steps):
+            if not live.any():
+                break
+            t_in = time.perf_counter()
+            idx = np.flatnonzero(live)
+            reasons = {}
+            for i in idx:
+                f, reasons[i] = lanes[i]._admit(meas[i])
+                if f is None:     # from a simulator this cannot happen: a lane fault
+                    out[i], live[i] = ("failed", f"measurement refused: {reasons[i]}"), False
+                else:
+                    flat[i] = f
+            new_state, prep, packed = self._vprep(fixed, state, flat)
+            prep_np, packed = np.asarray(prep), np.asarray(packed)
+            state = np.where(live[:, None], np.asarray(new_state), state)
+            sols = np.tile(no_sol, (W, 1))
+            cmds = {}
+            for i in np.flatnonzero(live):
+                try:
+                    cmds[i] = lanes[i]._finish(prep_np[i], packed[i], reasons[i], meas[i].t,
+                                               t_in, t_in)
+                    sols[i] = lanes[i]._pending[1]
+                except Exception as e:  # noqa: BLE001
+                    out[i], live[i] = ("failed", f"{type(e).__name__}: {e}"), False
+                lanes[i]._pending = None
+            new_tally, packed_out = self._vconc(fixed, tally, prep, sols)
+            tally = np.where(live[:, None], np.asarray(new_tally), tally)
+            rec = self.leader._unpack_out(np.asarray(packed_out))[0]
+            for i in np.flatnonzero(live):
+                try:
+                    p = pushes[i]
+                    force = force_at(p, float(rec.tau[i])) if p is not None else 0.0
+                    meas[i], legs[i], loop_res[i] = sims[i].advance(cmds[i].motor, force, k)
+                except Exception as e:  # noqa: BLE001
+                    out[i], live[i] = ("failed", f"{type(e).__name__}: {e}"), False
+            soles = np.stack([s.d.site_xpos[sole_ids] for s in sims])
+            plant = metrics.plant_accumulate(plant, live, rec, soles, sole0, loop_res, legs)
+            for i in np.flatnonzero(live):
+                if fallen(meas[i].q, meas[i].v):
+                    fell_step[i], live[i] = k, False
+        for i in range(n):
+            if out[i] is not None:
+                continue
+            lane = lanes[i]
+            lane._tally, lane._state = tally[i].copy(), state[i].copy()
+            fell = bool(fell_step[i] >= 0)
+            acc = jax.tree_util.tree_map(lambda a: a[i], plant)
+            flat_cols = metrics.finalize(lane.tally.acc, acc, fell,
+                                         lane.state.gait if lane.walking else None)
+            out[i] = ("done", fell, int(fell_step[i]), flat_cols)
+        return out
