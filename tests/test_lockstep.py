@@ -57,9 +57,9 @@ def test_lockstep_lanes_are_the_deployment_loop(loop):
     """Each lane against the deployment loop run alone on the same rollout: the same
     falls and counts exactly, every metric within 1e-6 (the vmapped kernels round
     differently from the single-robot ones, ~1e-16 relative, and the closed loop carries
-    that; measured <= 5e-7 over 400 steps, barrier minima <= 1e-9 m). A lane whose
-    Theorem 1 fails (p1 = 0.01 below its bound) fails alone with the reason, the others
-    run."""
+    that; measured <= 5e-7 over 400-1000 steps, barrier minima <= 1e-9 m). A lane whose
+    start state is refused (a NaN in its velocity perturbation) fails alone with the
+    reason, the others run."""
     ctl, sim, lock = loop
     bad = _task(ctl, sim, 2, 8.0, 0.0)
     bad[2][5] = np.nan

@@ -16,7 +16,7 @@ step:
 A lane whose robot fell, or whose rollout raised, stops (its row of the vmapped calls
 is still computed, and ignored); unused lanes (fewer rollouts than ``width``) likewise.
 Lane results agree with ``mujoco_loop.rollout`` to rounding (the vmapped XLA kernels are
-not the single-robot ones; ``tests/test_sweeps_rollouts.py`` holds them to it), and a
+not the single-robot ones; ``tests/test_lockstep.py`` holds them to it), and a
 lane's result does not depend on the other lanes.
 """
 
