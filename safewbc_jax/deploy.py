@@ -101,12 +101,16 @@ class MotorMap:
         return cls(tuple(a["name"] for a in acts), np.array(idx), gear, lim_j, lim_m)
 
     def arrays(self) -> control_step.MotorArrays:
+        return self._arrays
+
+    @functools.cached_property
+    def _arrays(self) -> control_step.MotorArrays:
         return control_step.MotorArrays(self.u_index, self.gear, self.motor_limit)
 
     def to_motor(self, u) -> np.ndarray:
         """Joint torques u (controller actuator order) -> motor torques u / gear, in motor
         order, clipped to the motor limits (``control_step.MotorArrays.to_motor``)."""
-        return self.arrays().to_motor(np.asarray(u, float))
+        return self._arrays.to_motor(np.asarray(u, float))
 
 
 def check_state(q, v, nq: int, nv: int) -> str:

@@ -62,7 +62,9 @@ def sim_loop_residual(ms, d, pairs=None) -> float:
     """Largest distance (m) between a rod's tip and the anchor it should meet; ``pairs``
     from ``loop_site_pairs`` (looked up by name when not given)."""
     tips, anchors = loop_site_pairs(ms) if pairs is None else pairs
-    return float(np.max(np.linalg.norm(d.site_xpos[tips] - d.site_xpos[anchors], axis=1)))
+    x = d.site_xpos
+    gap = x[tips] - x[anchors]
+    return float(np.sqrt((gap * gap).sum(axis=1).max()))
 
 
 def format_info(info: dict) -> str:

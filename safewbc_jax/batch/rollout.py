@@ -331,7 +331,7 @@ def sole_forces_and_leg_contact(pl: Plant, dx):
     """((2,) normal force of the left and the right sole on the floor (N), whether a
     geom of one leg touches one of the other leg), from MJX's contacts: the normal force
     of a pyramidal contact is the sum of its 2 (condim - 1) edge forces, as
-    ``mj_contactForce`` computes it (the deployment loop's ``_floor_and_leg_contacts``)."""
+    ``mj_contactForce`` computes it (the deployment loop's ``ContactSensing``)."""
     con = dx._impl.contact
     rows = np.asarray(pl.contact_rows)
     f = dx._impl.efc_force[np.maximum(rows, 0)] * (rows >= 0)
