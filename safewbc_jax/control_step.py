@@ -73,18 +73,20 @@ class Measurement:
 def state_ok(q, v, xp=np):
     """True where (q, v) can be a state of the robot: finite, the base quaternion of unit
     length within QUAT_TOL, every angular rate within MAX_RATE and the base speed within
-    MAX_SPEED (a NaN fails every comparison)."""
-    n2 = xp.sum(q[3:7] ** 2)
-    return (xp.isfinite(xp.sum(q)) & xp.isfinite(xp.sum(v))
+    MAX_SPEED (a NaN fails every comparison). Leading axes of q and v are a batch of
+    states (``sim.lockstep`` tests its lanes in one call); the result has those axes."""
+    n2 = xp.sum(q[..., 3:7] ** 2, axis=-1)
+    return (xp.isfinite(xp.sum(q, axis=-1)) & xp.isfinite(xp.sum(v, axis=-1))
             & (xp.abs(xp.sqrt(n2) - 1.0) <= QUAT_TOL)
-            & (xp.sum(v[:3] ** 2) <= MAX_SPEED ** 2) & (xp.max(xp.abs(v[3:])) <= MAX_RATE))
+            & (xp.sum(v[..., :3] ** 2, axis=-1) <= MAX_SPEED ** 2)
+            & (xp.max(xp.abs(v[..., 3:]), axis=-1) <= MAX_RATE))
 
 
 def fallen(q, v, xp=np):
     """The fall test, on a measurement: a non-finite state, or the base below FALL_HEIGHT
-    (q[2], the floating base's height)."""
-    finite = xp.isfinite(xp.sum(q)) & xp.isfinite(xp.sum(v))
-    return ~finite | (q[2] < FALL_HEIGHT)
+    (q[2], the floating base's height). Leading axes: a batch, as in ``state_ok``."""
+    finite = xp.isfinite(xp.sum(q, axis=-1)) & xp.isfinite(xp.sum(v, axis=-1))
+    return ~finite | (q[..., 2] < FALL_HEIGHT)
 
 
 @functools.partial(jax.tree_util.register_dataclass,

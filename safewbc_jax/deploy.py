@@ -29,8 +29,9 @@ import numpy as np
 from safewbc_jax import control_step, metrics, paths, robot, scenarios
 from safewbc_jax.packing import FlatTree, Packer
 from safewbc_jax.solvers import policy, reduce
-from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
-from safewbc_jax.solvers.result import FALLBACK_FAILED, FALLBACK_RELAXED, fallback_name, failed
+from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver, solve_lanes
+from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_RELAXED, NOT_ATTEMPTED,
+                                        SolveResult, fallback_name, failed)
 from safewbc_jax.solvers.status import SolveStatus
 
 # the measurement bounds and the fall test are the control step's (one definition)
@@ -511,6 +512,94 @@ class Controller:
         self._prev_t = t
         return self._command(self._last_u, SolveStatus(int(res.status)),
                              fallback_name(res.fallback), "ok", t_in)
+
+    @staticmethod
+    def admit_lanes(lanes: list, meas: list):
+        """``_admit`` for several lanes of one compiled step (``lane``; ``sim.lockstep``):
+        the control step's state test (``state_ok``) and the time tests run once over the
+        stacked measurements; a lane whose measurement fails one of them, or cannot be
+        stacked, goes through its own ``_admit``, which names the reason. Returns (the
+        flat measurements (L, .), or None where a lane's cannot enter the step; the
+        reasons, "ok" or why)."""
+        lead = lanes[0]
+        try:
+            flat = np.stack([lead._well_formed(m) for m in meas])
+        except (TypeError, ValueError):      # some measurement cannot be a flat vector
+            flat = None
+        if flat is None or flat.dtype != np.float64:
+            out = [lane._admit(m) for lane, m in zip(lanes, meas)]
+            return [f for f, _ in out], [r for _, r in out]
+        nq, nv = lead.model.nq, lead.model.nv
+        t = flat[:, -1]
+        prev = np.array([-np.inf if lane._prev_t is None else lane._prev_t for lane in lanes])
+        good = (state_ok(flat[:, :nq], flat[:, nq:nq + nv]) & np.isfinite(t) & (t > prev)
+                & np.isfinite(flat[:, nq + nv:-1]).all(axis=1))
+        reasons = ["ok"] * len(lanes)
+        for i, lane in enumerate(lanes):
+            if good[i] and (meas[i].sole_force is not None or not lane.walking):
+                lane.steps += 1
+            else:
+                reasons[i] = lane._admit(meas[i])[1]
+        return list(flat), reasons
+
+    @staticmethod
+    def finish_lanes(lanes: list, prep, packed, reasons: list, ts, t_in: float):
+        """``_finish`` for several lanes of one compiled step (``lane``; ``sim.lockstep``),
+        from the rows of a vmapped prepare (``prep``, ``packed``: leading axis L): PIQP per
+        lane with the acceptance of all at once (``piqp_path.solve_lanes``), then the
+        expansion X = x0 + N u, the usable test, the held-torque rule and the motor map of
+        ``_finish`` for all lanes at once, the same operations over the leading axis
+        (``tests/test_lockstep.py`` holds the two to each other); a lane whose measurement
+        was refused, or that has another solver than a PiqpSolver, runs ``_finish``.
+        ``ts``: the measurements' times. Returns (the Commands, the solve results as the
+        conclude's flat vectors (L, .)); no conclude is left pending (the caller runs it,
+        vmapped), and ``last_qp`` is not kept."""
+        L, lead = len(lanes), lanes[0]
+        sols = np.tile(lead._flat_sol(failed(lead._nx)), (L, 1))
+        cmds = [None] * L
+        batched = np.array([r == "ok" and isinstance(lane.solver, PiqpSolver)
+                            for r, lane in zip(reasons, lanes)])
+        for i in np.flatnonzero(~batched).tolist():
+            cmds[i] = lanes[i]._finish(prep[i], packed[i], reasons[i], ts[i], t_in, t_in)
+            if lanes[i]._pending is not None:
+                sols[i] = lanes[i]._pending[1]
+            lanes[i]._pending = None
+        idx = np.flatnonzero(batched)
+        if not idx.size:
+            return cmds, sols
+        t1 = time.perf_counter()
+        qpm, red, rmap, checks = lead._unpack_qp(packed if idx.size == L else packed[idx])
+        res = solve_lanes([lanes[i].solver for i in idx], red, checks)
+        x = rmap.x0 + (rmap.N @ res.x[..., None])[..., 0]          # reduce.expand
+        usable = (res.fallback != FALLBACK_FAILED) & np.all(np.isfinite(x), axis=1)
+        eq = np.max(np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b), axis=1)
+        keep = lambda a, other: np.where(usable, a, other)   # noqa: E731 - else failed()'s
+        res = SolveResult(
+            x=np.where(usable[:, None], x, np.nan),
+            status=np.where(usable | (res.fallback == FALLBACK_FAILED), res.status,
+                            int(SolveStatus.NUMERICAL)),
+            fallback=keep(res.fallback, FALLBACK_FAILED),
+            relaxed_status=keep(res.relaxed_status, NOT_ATTEMPTED), iterations=res.iterations,
+            max_slack=keep(res.max_slack, np.nan), eq_residual=keep(eq, np.nan),
+            ineq_violation=keep(res.ineq_violation, np.nan),
+            hard_violation=keep(res.hard_violation, np.nan), polished=usable & res.polished,
+            polish_iterations=keep(res.polish_iterations, 0))
+        t2 = time.perf_counter()
+        last_u = np.stack([lanes[i]._last_u for i in idx])
+        u = control_step.hold_torque(res.x, usable[:, None], last_u, qpm.blocks)
+        motor = lead.motors.arrays().to_motor(u)
+        sols[idx] = np.concatenate([res.x, np.stack(res[1:], axis=1).astype(np.float64)], axis=1)
+        times = ((t1 - t_in) * 1e6, (t2 - t1) * 1e6 / idx.size)
+        t_out = (time.perf_counter() - t_in) * 1e6
+        for j, i in enumerate(idx.tolist()):
+            lane, fb = lanes[i], int(res.fallback[j])
+            lane.last_times, lane._pending = times, None
+            lane.qp_failed += fb == FALLBACK_FAILED
+            lane.fallbacks += fb == FALLBACK_RELAXED
+            lane._last_u, lane._prev_t = u[j], ts[i]
+            cmds[i] = Command(u[j].copy(), motor[j], SolveStatus(int(res.status[j])),
+                              fallback_name(fb), "ok", t_out)
+        return cmds, sols
 
     def _flat_sol(self, res) -> np.ndarray:
         """A host SolveResult as the jitted conclude's flat vector (``FlatTree`` layout:

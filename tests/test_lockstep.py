@@ -91,3 +91,53 @@ def test_lockstep_lane_does_not_depend_on_its_neighbours(loop):
     two = lock.run([a], 200)
     for name, v in one[0][3].items():
         np.testing.assert_array_equal(two[0][3][name], v, err_msg=name)
+
+
+@pytest.mark.slow
+def test_finish_lanes_is_finish_lane_by_lane(loop):
+    """``Controller.finish_lanes`` (the lockstep's host side: PIQP per lane, the acceptance,
+    expansion, held torque and motor map for all lanes at once) against each lane's own
+    ``_finish`` on the same rows of the vmapped prepare, with fresh solvers on both sides:
+    a lane solved as posed, one whose QP needs the relaxed QP (a soft row no torque can
+    meet), one that fails (a hard row no torque can meet: last torque held) and one whose
+    measurement was refused. Commands, counters and statuses exactly; the solve records
+    within 1e-12 relative / 1e-9 absolute (X = x0 + N u is one batched product against
+    one per lane: BLAS may round differently; the torques are N's identity block and come
+    out exactly)."""
+    from safewbc_jax.deploy import Controller
+
+    ctl, sim, lock = loop
+    sim.reset()
+    ctl.restart(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
+    meas = sim.sense(0.0)[0]
+    rows = lambda a: np.stack([np.asarray(a)] * 3)  # noqa: E731
+    _, prep, packed = lock._vprep(rows(ctl._fixed), rows(ctl._state),
+                                  rows(ctl._well_formed(meas)))
+    prep, packed = np.array(prep), np.array(packed)        # writable copies
+    _, red, _, checks = ctl._unpack_qp(packed)              # views into packed
+    soft, hard = np.flatnonzero(red.soft[0] > 0), np.flatnonzero(red.soft[0] == 0)
+    for lane, row in ((1, soft[0]), (2, hard[0])):          # 0 u <= -1000
+        red.G[lane, row] = checks.rows[lane, row] = 0.0
+        red.h[lane, row] = checks.rhs[lane, row] = -1e3
+    pick = [0, 1, 2, 0]
+    prep, packed = prep[pick], packed[pick]
+    reasons = ["ok", "ok", "ok", "t = 0.0 does not advance (last step at 0.0)"]
+    batch, single = [ctl.lane() for _ in pick], [ctl.lane() for _ in pick]
+    for lane in batch + single:
+        lane._last_u = np.full(ctl.model.nu, 0.5)           # the torque a failed step holds
+    cmds, sols = Controller.finish_lanes(batch, prep, packed, reasons, [0.0] * 4, 0.0)
+    assert [c.fallback for c in cmds] == ["none", "relaxed", "failed", "held"]
+    for i, lane in enumerate(single):
+        want = lane._finish(prep[i], packed[i], reasons[i], 0.0, 0.0, 0.0)
+        got = cmds[i]
+        assert (got.solve_status, got.fallback, got.measurement) == \
+            (want.solve_status, want.fallback, want.measurement)
+        np.testing.assert_array_equal(got.u, want.u)
+        np.testing.assert_array_equal(got.motor, want.motor)
+        np.testing.assert_allclose(sols[i], lane._pending[1], rtol=1e-12, atol=1e-9)
+        b = batch[i]
+        assert (b.steps, b.qp_failed, b.fallbacks, b._prev_t) == \
+            (lane.steps, lane.qp_failed, lane.fallbacks, lane._prev_t)
+        np.testing.assert_array_equal(b._last_u, lane._last_u)
+        assert b._pending is None
+    np.testing.assert_array_equal(cmds[2].u, np.full(ctl.model.nu, 0.5))

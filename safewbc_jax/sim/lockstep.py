@@ -4,20 +4,23 @@
 step, whose cost on a CPU is mostly XLA's per-kernel runtime, not arithmetic. A worker
 that runs ``width`` rollouts side by side pays that runtime once per step for all of
 them: the same jitted functions of ``deploy.Controller`` (its unjitted ``prepare`` and
-``conclude``), vmapped over the lanes. Everything else is each lane's own ``Controller``
-(``Controller.lane``: the measurement checks of ``_admit``, PIQP and the held-torque rule
-of ``_finish``, its own PIQP solvers) and its own ``SimRobot`` (``SimRobot.sibling``: one
-MjModel, one MjData per lane), so a lane runs what ``mujoco_loop.rollout`` runs, step by
-step:
+``conclude``), vmapped over the lanes. Each lane is its own ``Controller``
+(``Controller.lane``: its own counters, state and PIQP solvers) and its own ``SimRobot``
+(``SimRobot.sibling``: one MjModel, one MjData per lane). The host side of the step runs
+for all lanes at once where it is plain array arithmetic (``Controller.admit_lanes``: the
+measurement checks; ``Controller.finish_lanes``: the acceptance, X = x0 + N u, the
+held-torque rule, the motor map), with PIQP still one solve per lane; a lane whose
+measurement is refused, or whose result needs the relaxed QP, takes the single-robot
+code for that step. So a lane runs what ``mujoco_loop.rollout`` runs, step by step:
 
-    measurement -> Controller._admit -> [prepare, vmapped] -> Controller._finish (PIQP)
+    measurement -> admit -> [prepare, vmapped] -> finish (PIQP per lane)
     -> [conclude, vmapped] -> push -> SimRobot.advance -> plant metrics -> fall test
 
 A lane whose robot fell, or whose rollout raised, stops (its row of the vmapped calls
 is still computed, and ignored); unused lanes (fewer rollouts than ``width``) likewise.
 Lane results agree with ``mujoco_loop.rollout`` to rounding (the vmapped XLA kernels are
-not the single-robot ones; ``tests/test_lockstep.py`` holds them to it), and a
-lane's result does not depend on the other lanes.
+not the single-robot ones; ``tests/test_lockstep.py`` holds them to it, and
+``finish_lanes`` to ``_finish``), and a lane's result does not depend on the other lanes.
 """
 
 from __future__ import annotations
@@ -100,10 +103,10 @@ class Lockstep:
             if not live.any():
                 break
             t_in = time.perf_counter()
-            idx = np.flatnonzero(live)
-            reasons = {}
-            for i in idx:
-                f, reasons[i] = lanes[i]._admit(meas[i])
+            idx = np.flatnonzero(live).tolist()
+            fs, rs = Controller.admit_lanes([lanes[i] for i in idx], [meas[i] for i in idx])
+            reasons = dict(zip(idx, rs))
+            for i, f in zip(idx, fs):
                 if f is None:     # from a simulator this cannot happen: a lane fault
                     out[i], live[i] = ("failed", f"measurement refused: {reasons[i]}"), False
                 else:
@@ -113,14 +116,18 @@ class Lockstep:
             state = np.where(live[:, None], np.asarray(new_state), state)
             sols = np.tile(no_sol, (W, 1))
             cmds = {}
-            for i in np.flatnonzero(live):
-                try:
-                    cmds[i] = lanes[i]._finish(prep_np[i], packed[i], reasons[i], meas[i].t,
-                                               t_in, t_in)
-                    sols[i] = lanes[i]._pending[1]
-                except Exception as e:  # noqa: BLE001
+            idx = np.flatnonzero(live)
+            every = idx.size == W
+            try:
+                if idx.size:
+                    got, sols[idx] = Controller.finish_lanes(
+                        [lanes[i] for i in idx], prep_np if every else prep_np[idx],
+                        packed if every else packed[idx], [reasons[i] for i in idx],
+                        [meas[i].t for i in idx], t_in)
+                    cmds = dict(zip(idx.tolist(), got))
+            except Exception as e:  # noqa: BLE001 - these rollouts fail, with the reason
+                for i in idx.tolist():
                     out[i], live[i] = ("failed", f"{type(e).__name__}: {e}"), False
-                lanes[i]._pending = None
             new_tally, packed_out = self._vconc(fixed, tally, prep, sols)
             tally = np.where(live[:, None], np.asarray(new_tally), tally)
             rec = self.leader._unpack_out(np.asarray(packed_out))[0]
@@ -133,9 +140,11 @@ class Lockstep:
                     out[i], live[i] = ("failed", f"{type(e).__name__}: {e}"), False
             soles = np.stack([s.d.site_xpos[sole_ids] for s in sims])
             plant = metrics.plant_accumulate(plant, live, rec, soles, sole0, loop_res, legs)
-            for i in np.flatnonzero(live):
-                if fallen(meas[i].q, meas[i].v):
-                    fell_step[i], live[i] = k, False
+            idx = np.flatnonzero(live)
+            if idx.size:
+                down = idx[fallen(np.stack([meas[i].q for i in idx]),
+                                  np.stack([meas[i].v for i in idx]))]
+                fell_step[down], live[down] = k, False
         for i in range(n):
             if out[i] is not None:
                 continue

@@ -42,8 +42,9 @@ class RunConfig:
 
 class ContactSensing:
     """What the loop reads from MuJoCo's contact list each step: the normal force (N) of
-    each sole on the floor (``mj_contactForce``, summed over that sole's contacts in
-    MuJoCo's order) and whether a collision geom of one leg touches one of the other leg.
+    each sole on the floor (``mj_contactForce``'s normal component, read for all contacts
+    at once from ``efc_force``, summed over that sole's contacts) and whether a collision
+    geom of one leg touches one of the other leg.
     ``ids``: ``modelinfo.foot_contact_ids``. Geoms are looked up in two small tables built
     once (floor 1, left sole 2, right sole 4, so a contact's pair of codes sums to 3 or 5
     exactly for a sole on the floor; left leg 1, right leg 2, so a pair ORs to 3 exactly
@@ -60,19 +61,40 @@ class ContactSensing:
 
     def __call__(self, ms, d) -> tuple[float, float, bool]:
         """(left sole force, right sole force, legs touching) of MjData ``d``."""
-        import mujoco
-
         if d.ncon == 0:
             return 0.0, 0.0, False
-        g = d.contact.geom                      # (ncon, 2)
+        con = d.contact
+        g = con.geom                            # (ncon, 2)
         pair = self._code[g].sum(axis=1)
         side = self._side[g]
         legs = bool(np.any((side[:, 0] | side[:, 1]) == 3))
-        force, f6 = [0.0, 0.0], self._f6
-        for i in np.flatnonzero((pair == 3) | (pair == 5)).tolist():
-            mujoco.mj_contactForce(ms, d, i, f6)
-            force[int(pair[i] == 5)] += abs(f6[0])
-        return force[0], force[1], legs
+        sole = (pair == 3) | (pair == 5)
+        if not sole.any():
+            return 0.0, 0.0, legs
+        f = np.abs(self._normal(ms, d, np.flatnonzero(sole), con))
+        right = pair[sole] == 5
+        return float(f[~right].sum()), float(f[right].sum()), legs
+
+    @staticmethod
+    def _normal(ms, d, idx, con):
+        """The normal force of contacts ``idx`` (``mj_contactForce``'s first component):
+        with a pyramidal cone, the sum of the contact's 2 (dim - 1) pyramid-edge forces in
+        ``efc_force`` (its first for dim 1), as MuJoCo decodes the pyramid; 0 for a
+        contact outside the constraint (efc_address -1). Other cones: mj_contactForce."""
+        import mujoco
+
+        if ms.opt.cone != mujoco.mjtCone.mjCONE_PYRAMIDAL:
+            f6, out = np.zeros(6), np.zeros(idx.size)
+            for j, i in enumerate(idx.tolist()):
+                mujoco.mj_contactForce(ms, d, i, f6)
+                out[j] = f6[0]
+            return out
+        adr, dim = con.efc_address[idx], con.dim[idx]
+        n_edges = np.where(dim == 1, 1, 2 * (dim - 1))
+        k = np.arange(int(n_edges.max()))
+        take = (k < n_edges[:, None]) & (adr[:, None] >= 0)
+        at = np.where(take, adr[:, None] + k, 0)
+        return np.where(take, d.efc_force[at], 0.0).sum(axis=1)
 
 
 def load_at_stand():

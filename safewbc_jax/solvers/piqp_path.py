@@ -58,7 +58,8 @@ from safewbc_jax.qp_types import FIELDS, QP
 from safewbc_jax.solvers import policy
 from safewbc_jax.solvers.policy import Attempt
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN, relax_soft_rows_np
-from safewbc_jax.solvers.result import SolveResult
+from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, NOT_ATTEMPTED,
+                                        SolveResult)
 from safewbc_jax.solvers.status import SolveStatus
 
 _PIQP_STATUS = {
@@ -284,6 +285,52 @@ class PiqpSolver:
                        iterations=iters, polished=False, polish_iterations=0)
 
 
+def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
+    """``PiqpSolver.solve(qp_l, checks=checks_l)`` for L QPs of one shape, each with its own
+    ``PiqpSolver`` (``solvers[l]``; the lanes of ``sim.lockstep``): PIQP solves each QP as
+    posed, the acceptance of all L runs at once (``policy.accept_batch``), and the relaxed
+    QP (b) is solved, per QP, only where the QP as posed failed. ``qp`` and ``checks``:
+    float64 numpy arrays with the leading axis L. Returns one SolveResult whose fields are
+    numpy arrays with the leading axis L; row l is what ``solvers[l].solve`` returns for
+    QP l (``tests/test_lockstep.py`` holds the two equal)."""
+    L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
+    X = np.full((L, n), np.nan)
+    status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
+    rows = [QP(*(a[l] for a in qp.arrays())) for l in range(L)]
+    for l, s in enumerate(solvers):
+        t0 = time.perf_counter_ns()
+        try:
+            x, st, it = s._nominal.solve(rows[l])
+        except Exception:  # noqa: BLE001 - a solver exception fails this lane's step only
+            s._nominal = _make_backend(s.backend, s.nominal_settings, s.update)
+            x, st, it = None, SolveStatus.NUMERICAL, 0
+        if x is not None:
+            X[l] = x
+        status[l], iters[l] = st, it
+        s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
+    tol = np.array([s.feas_tol for s in solvers])
+    status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)
+    ok = status == SolveStatus.SOLVED
+    nan = np.full(L, np.nan)
+    out = SolveResult(
+        x=np.where(ok[:, None], X, np.nan), status=status,
+        fallback=np.where(ok, FALLBACK_NONE, FALLBACK_FAILED),
+        relaxed_status=np.full(L, NOT_ATTEMPTED), iterations=iters,
+        max_slack=np.where(ok, 0.0, np.nan), eq_residual=np.where(ok, eq, nan),
+        ineq_violation=np.where(ok, ineq, nan), hard_violation=np.where(ok, hard, nan),
+        polished=np.zeros(L, bool), polish_iterations=np.zeros(L, np.int64))
+    for l in np.flatnonzero(~ok).tolist():       # (b), then (c): per QP, rare
+        s, t0 = solvers[l], time.perf_counter_ns()
+        nom = Attempt(x=X[l], status=int(status[l]), res=(eq[l], ineq[l], hard[l]),
+                      max_slack=0.0, iterations=int(iters[l]), polished=False,
+                      polish_iterations=0)
+        r = policy.finish(nom, s._solve_relaxed(rows[l], n, mi), np)
+        for field, a in zip(SolveResult._fields, out):
+            a[l] = getattr(r, field)
+        s.last_solve_time_us += (time.perf_counter_ns() - t0) / 1e3
+    return out
+
+
 def solve_qp_piqp(qp: QP, initvals=None, **settings) -> tuple[np.ndarray | None, SolveStatus]:
     """One plain solve through qpsolvers' PIQP interface (dense backend), no fallback.
 
@@ -302,5 +349,5 @@ def solve_qp_piqp(qp: QP, initvals=None, **settings) -> tuple[np.ndarray | None,
     return (x if status == SolveStatus.SOLVED else None), status
 
 
-__all__ = ["PiqpSolver", "solve_qp_piqp", "status_from_piqp", "qp_to_numpy", "residuals",
-           "DEFAULT_SETTINGS", "REDUCED_QP_SETTINGS"]
+__all__ = ["PiqpSolver", "solve_lanes", "solve_qp_piqp", "status_from_piqp", "qp_to_numpy",
+           "residuals", "DEFAULT_SETTINGS", "REDUCED_QP_SETTINGS"]

@@ -109,17 +109,39 @@ def checks(qp: QP, xp=np) -> Checks:
 
 
 def residuals_checked(x, qp: QP, ch: Checks):
-    """(eq, ineq, hard) of ``residuals`` for a host x and ``ch`` = ``checks(qp)``. A
-    non-finite x gives a NaN or +inf in ineq (each x_i is in two rows, +x_i - ub_i and
-    -x_i + lb_i: an infinite x_i makes one of them +inf or inf - inf), so that ineq's
-    test also rejects it; ``tests/test_piqp_path.py`` holds the two to each other."""
-    eq = float(np.abs(qp.A @ x - qp.b).max()) if qp.A.shape[0] else 0.0
-    v = ch.rows @ x
+    """(eq, ineq, hard) of ``residuals`` for a host x and ``ch`` = ``checks(qp)``, as numpy
+    arrays. A non-finite x gives a NaN or +inf in ineq (each x_i is in two rows, +x_i - ub_i
+    and -x_i + lb_i: an infinite x_i makes one of them +inf or inf - inf), so that ineq's
+    test also rejects it; ``tests/test_piqp_path.py`` holds the two to each other. Leading
+    axes of x, of qp's arrays and of ch's arrays are a batch of QPs (``accept_batch``);
+    the residuals then have those axes (0-d arrays for one QP)."""
+    def mv(m, y):                                # m y over leading axes
+        return m @ y if y.ndim == 1 else (m @ y[..., None])[..., 0]
+
+    if qp.A.shape[-2]:
+        eq = np.abs(mv(qp.A, x) - qp.b).max(axis=-1)
+    else:
+        eq = np.zeros(x.shape[:-1])
+    v = mv(ch.rows, x)
     v -= ch.rhs
-    ineq = max(float(v.max()), 0.0) if v.size else 0.0
+    ineq = np.maximum(v.max(axis=-1, initial=-np.inf), 0.0)
     v += ch.soft_pen
-    hard = max(float(v.max()), 0.0) if v.size else 0.0
+    hard = np.maximum(v.max(axis=-1, initial=-np.inf), 0.0)
     return eq, ineq, hard
+
+
+def accept_batch(x, qp: QP, status, feas_tol, checks: Checks):
+    """``accept`` with ``checks`` for a batch of QPs on the host (``piqp_path.solve_lanes``):
+    x (L, n), status (L,) SolveStatus codes, qp's and checks' arrays with the leading axis
+    L. Returns (status (L,), (eq, ineq, hard) each (L,)); the residuals are NaN where the
+    solver did not report SOLVED, as ``accept`` leaves them on the host."""
+    status = np.asarray(status)
+    eq, ineq, hard = residuals_checked(x, qp, checks)
+    solved = status == SOLVED
+    # a NaN fails both comparisons: ineq is NaN or inf for a non-finite x
+    good = (eq <= feas_tol * checks.eq_scale) & (ineq <= feas_tol * checks.in_scale)
+    out = np.where(solved & ~good, NUMERICAL, status)
+    return out, tuple(np.where(solved, r, np.nan) for r in (eq, ineq, hard))
 
 
 def accept(x, qp: QP, status, feas_tol, xp=np, slack=None, checks: Checks | None = None):
@@ -131,7 +153,7 @@ def accept(x, qp: QP, status, feas_tol, xp=np, slack=None, checks: Checks | None
     if xp is not jnp and status != SOLVED:
         return status, (float("nan"),) * 3
     if checks is not None:
-        eq, ineq, hard = residuals_checked(x, qp, checks)
+        eq, ineq, hard = (float(r) for r in residuals_checked(x, qp, checks))
         # a NaN fails both comparisons: ineq is NaN or inf for a non-finite x
         if status == SOLVED and not (eq <= feas_tol * checks.eq_scale
                                      and ineq <= feas_tol * checks.in_scale):
@@ -221,5 +243,5 @@ def finish(nom: Attempt, rel: Attempt | None, xp=np) -> SolveResult:
                        polished=bool(polished), polish_iterations=int(kp))
 
 
-__all__ = ["residuals", "scales", "Checks", "checks", "residuals_checked", "accept", "Attempt",
-           "skipped", "decide", "finish"]
+__all__ = ["residuals", "scales", "Checks", "checks", "residuals_checked", "accept",
+           "accept_batch", "Attempt", "skipped", "decide", "finish"]
