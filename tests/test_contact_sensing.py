@@ -1,5 +1,5 @@
-"""The MuJoCo loop's contact sensing (``mujoco_loop.ContactSensing``: two geom tables
-over ``d.contact.geom``, the normal forces gathered from ``efc_force``) against a plain
+"""The MuJoCo loop's contact sensing (``mujoco_loop.ContactSensing``: one geom-pair table
+over ``d.contact.geom``) against a plain
 reading of MuJoCo's contact list: one ``d.contact[i]`` object per contact, its two geom
 ids tested by set membership, and ``mj_contactForce`` for each sole-floor contact."""
 
@@ -46,8 +46,8 @@ def states(ms):
 
 @pytest.mark.parametrize("cone", ["pyramidal", "elliptic"])
 def test_contact_sensing_matches_a_plain_reading_of_the_contact_list(sim_mj, cone):
-    """The model's pyramidal cone (normal forces summed from the pyramid edges' forces),
-    and an elliptic copy (ContactSensing falls back to mj_contactForce there)."""
+    """The model's pyramidal friction cone, and an elliptic copy: the sole forces are
+    mj_contactForce's normal component either way."""
     ms = sim_mj
     if cone == "elliptic":
         ms = copy.deepcopy(sim_mj)
@@ -58,9 +58,8 @@ def test_contact_sensing_matches_a_plain_reading_of_the_contact_list(sim_mj, con
     seen = {"legs": 0, "both soles": 0, "no contact": 0}
     for d in states(ms):
         got, want = sense(ms, d), reference(ms, d, ids)
-        # the same efc_force entries that mj_contactForce adds, added by numpy in another
-        # grouping (edges, then contacts): a few ulps apart; 1e-12 relative is ~4,500 ulps
-        # of the sum, and anything but rounding (a missed edge, a wrong sole) is >= 1e-3
+        # the same mj_contactForce values added in the same (MuJoCo's) order: equal up
+        # to the last bit; 1e-12 relative leaves room for nothing but that
         assert got[:2] == pytest.approx(want[:2], rel=1e-12, abs=1e-12)
         assert got[2] == want[2]
         seen["legs"] += want[2]
