@@ -329,6 +329,7 @@ class Controller:
         bounded = reduce.bounded_variables(qp0)
         p_blockdiag = reduce.p_block_diagonal(qp0)
         self._nx = int(qp0.P.shape[0])
+        self._no_sol = self._flat_sol(failed(self._nx))     # conclude's "no solution"
         prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
         sol0 = failed(self._nx)
         self._flat = {k: FlatTree(t) for k, t in (("fixed", fixed), ("state", state0),
@@ -555,7 +556,7 @@ class Controller:
         conclude's flat vectors (L, .)); no conclude is left pending (the caller runs it,
         vmapped), and ``last_qp`` is not kept."""
         L, lead = len(lanes), lanes[0]
-        sols = np.tile(lead._flat_sol(failed(lead._nx)), (L, 1))
+        sols = np.tile(lead._no_sol, (L, 1))
         cmds = [None] * L
         batched = np.array([r == "ok" and isinstance(lane.solver, PiqpSolver)
                             for r, lane in zip(reasons, lanes)])

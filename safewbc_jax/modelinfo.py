@@ -61,10 +61,15 @@ def control_substeps(ms, control_dt: float) -> int | None:
 def sim_loop_residual(ms, d, pairs=None) -> float:
     """Largest distance (m) between a rod's tip and the anchor it should meet; ``pairs``
     from ``loop_site_pairs`` (looked up by name when not given)."""
-    tips, anchors = loop_site_pairs(ms) if pairs is None else pairs
-    x = d.site_xpos
-    gap = x[tips] - x[anchors]
-    return float(np.sqrt((gap * gap).sum(axis=1).max()))
+    return float(loop_residual(d.site_xpos, loop_site_pairs(ms) if pairs is None else pairs))
+
+
+def loop_residual(site_xpos, pairs):
+    """``sim_loop_residual`` from the sites' world positions (..., nsite, 3); leading axes
+    are a batch (``sim.lockstep``'s lanes) and stay in the result."""
+    tips, anchors = pairs
+    gap = site_xpos[..., tips, :] - site_xpos[..., anchors, :]
+    return np.sqrt((gap * gap).sum(axis=-1).max(axis=-1))
 
 
 def format_info(info: dict) -> str:

@@ -32,10 +32,10 @@ import numpy as np
 
 from safewbc_jax import metrics
 from safewbc_jax.control_step import fallen
+from safewbc_jax.modelinfo import loop_residual
 from safewbc_jax.deploy import Controller
 from safewbc_jax.push import force_at
 from safewbc_jax.sim.mujoco_loop import SimRobot
-from safewbc_jax.solvers.result import failed
 
 
 class Lockstep:
@@ -94,11 +94,11 @@ class Lockstep:
         plant = jax.tree_util.tree_map(lambda *a: np.stack(a),
                                        *[metrics.plant_init() for _ in range(W)])
         sole0 = np.stack([s.sole0 for s in sims])
-        sole_ids = self.sim.sole_ids
-        loop_res, legs = np.zeros(W), np.zeros(W, bool)
+        sole_ids, loop_pairs = self.sim.sole_ids, self.sim.loop_pairs
+        legs = np.zeros(W, bool)
         fell_step = np.full(W, -1)
         pushes = [None if i >= n or tasks[i] is None else tasks[i][1] for i in range(W)]
-        no_sol = self.leader._flat_sol(failed(self.leader._nx))
+        no_sol = self.leader._no_sol
         for k in range(n_steps):
             if not live.any():
                 break
@@ -135,10 +135,11 @@ class Lockstep:
                 try:
                     p = pushes[i]
                     force = force_at(p, float(rec.tau[i])) if p is not None else 0.0
-                    meas[i], legs[i], loop_res[i] = sims[i].advance(cmds[i].motor, force, k)
+                    meas[i], legs[i], _ = sims[i].advance(cmds[i].motor, force, k, False)
                 except Exception as e:  # noqa: BLE001
                     out[i], live[i] = ("failed", f"{type(e).__name__}: {e}"), False
-            soles = np.stack([s.d.site_xpos[sole_ids] for s in sims])
+            sites = np.stack([s.d.site_xpos for s in sims])
+            soles, loop_res = sites[:, sole_ids], loop_residual(sites, loop_pairs)
             plant = metrics.plant_accumulate(plant, live, rec, soles, sole0, loop_res, legs)
             idx = np.flatnonzero(live)
             if idx.size:

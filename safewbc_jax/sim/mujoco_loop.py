@@ -147,16 +147,17 @@ class SimRobot:
         other.reset()
         return other
 
-    def advance(self, motor, push_force, k):
+    def advance(self, motor, push_force, k, residual: bool = True):
         """Apply the motor torques and the push, advance one control period, sense step k's
-        outcome: returns (next Measurement, legs touching, rod loop residual)."""
+        outcome: returns (next Measurement, legs touching, rod loop residual; None with
+        ``residual`` False: ``sim.lockstep`` takes all lanes' at once)."""
         d = self.d
         d.ctrl[self.motor_ids] = motor
         d.xfrc_applied[self.base_id, :3] = push_force
         for _ in range(self.n_sub):
             self._mj.mj_step(self.ms, d)
         meas, legs = self.sense((k + 1) * self.control_dt)
-        return meas, legs, sim_loop_residual(self.ms, d, self.loop_pairs)
+        return meas, legs, sim_loop_residual(self.ms, d, self.loop_pairs) if residual else None
 
     def step(self, motor, push_force, k, plant, rec):
         """``advance``, then the plant metrics: returns (next Measurement, legs touching,

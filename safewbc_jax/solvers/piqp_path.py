@@ -296,7 +296,8 @@ def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
     L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
     X = np.full((L, n), np.nan)
     status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
-    rows = [QP(*(a[l] for a in qp.arrays())) for l in range(L)]
+    P, q, A, b, G, h, lb, ub, soft = qp.arrays()
+    rows = [QP(P[l], q[l], A[l], b[l], G[l], h[l], lb[l], ub[l], soft[l]) for l in range(L)]
     for l, s in enumerate(solvers):
         t0 = time.perf_counter_ns()
         try:
