@@ -537,7 +537,7 @@ class Controller:
                 & np.isfinite(flat[:, nq + nv:-1]).all(axis=1))
         reasons = ["ok"] * len(lanes)
         for i, lane in enumerate(lanes):
-            if good[i] and (meas[i].sole_force is not None or not lane.walking):
+            if good[i]:       # (a walking lane without sole forces could not be stacked)
                 lane.steps += 1
             else:
                 reasons[i] = lane._admit(meas[i])[1]
@@ -571,7 +571,7 @@ class Controller:
         t1 = time.perf_counter()
         qpm, red, rmap, checks = lead._unpack_qp(packed if idx.size == L else packed[idx])
         res = solve_lanes([lanes[i].solver for i in idx], red, checks)
-        x = rmap.x0 + (rmap.N @ res.x[..., None])[..., 0]          # reduce.expand
+        x = reduce.expand(res.x, rmap)
         usable = (res.fallback != FALLBACK_FAILED) & np.all(np.isfinite(x), axis=1)
         eq = np.max(np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b), axis=1)
         keep = lambda a, other: np.where(usable, a, other)   # noqa: E731 - else failed()'s

@@ -247,15 +247,7 @@ class PiqpSolver:
         if checks is None:
             qp = qp_to_numpy(qp)
         n, mi = qp.P.shape[0], qp.G.shape[0]
-        nan_x = np.full(n, np.nan)
-
-        # (a) the QP as posed
-        try:
-            x, status, iters = self._nominal.solve(qp, initvals)
-        except Exception:  # noqa: BLE001 - a solver exception is a failed step, not a crash
-            self._nominal = _make_backend(self.backend, self.nominal_settings, self.update)
-            x, status, iters = None, SolveStatus.NUMERICAL, 0
-        x = nan_x if x is None else x
+        x, status, iters = self._solve_nominal(qp, initvals)       # (a) the QP as posed
         status, res = policy.accept(x, qp, status, self.feas_tol, np, checks=checks)
         nom = Attempt(x=x, status=status, res=res, max_slack=0.0, iterations=iters,
                       polished=False, polish_iterations=0)
@@ -265,6 +257,17 @@ class PiqpSolver:
         out = policy.finish(nom, rel, np)
         self.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
         return out
+
+    def _solve_nominal(self, qp: QP, initvals=None):
+        """(a): PIQP on the QP as posed: (x, all NaN where PIQP gave none; its status;
+        iterations). A solver exception is a failed solve (NUMERICAL) and a fresh backend,
+        never a crash."""
+        try:
+            x, status, iters = self._nominal.solve(qp, initvals)
+        except Exception:  # noqa: BLE001 - a solver exception is a failed step, not a crash
+            self._nominal = _make_backend(self.backend, self.nominal_settings, self.update)
+            x, status, iters = None, SolveStatus.NUMERICAL, 0
+        return (np.full(qp.P.shape[0], np.nan) if x is None else x), status, iters
 
     def _solve_relaxed(self, qp: QP, n: int, mi: int) -> Attempt:
         """(b): the relaxed QP, its slack columns of hard rows left out."""
@@ -294,20 +297,13 @@ def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
     numpy arrays with the leading axis L; row l is what ``solvers[l].solve`` returns for
     QP l (``tests/test_lockstep.py`` holds the two equal)."""
     L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
-    X = np.full((L, n), np.nan)
+    X = np.empty((L, n))
     status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
     P, q, A, b, G, h, lb, ub, soft = qp.arrays()
     rows = [QP(P[l], q[l], A[l], b[l], G[l], h[l], lb[l], ub[l], soft[l]) for l in range(L)]
     for l, s in enumerate(solvers):
         t0 = time.perf_counter_ns()
-        try:
-            x, st, it = s._nominal.solve(rows[l])
-        except Exception:  # noqa: BLE001 - a solver exception fails this lane's step only
-            s._nominal = _make_backend(s.backend, s.nominal_settings, s.update)
-            x, st, it = None, SolveStatus.NUMERICAL, 0
-        if x is not None:
-            X[l] = x
-        status[l], iters[l] = st, it
+        X[l], status[l], iters[l] = s._solve_nominal(rows[l])
         s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
     tol = np.array([s.feas_tol for s in solvers])
     status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)

@@ -169,8 +169,11 @@ def eliminate_equalities_np(qp: QP, bounded=None, p_blockdiag: bool = False):
 
 
 def expand(u, red: Reduction):
-    """X = x0 + N u."""
-    return red.x0 + red.N @ u
+    """X = x0 + N u; leading axes of u and of red's arrays are a batch (the lockstep's
+    lanes on the host: ``deploy.Controller.finish_lanes``)."""
+    if u.ndim == 1:
+        return red.x0 + red.N @ u
+    return red.x0 + (red.N @ u[..., None])[..., 0]
 
 
 def has_controller_structure(qp: QP) -> bool:
