@@ -111,8 +111,10 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     ctl.restart(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
     meas = sim.sense(0.0)[0]
     rows = lambda a: np.stack([np.asarray(a)] * 3)  # noqa: E731
-    _, prep, packed = lock._vprep(rows(ctl._fixed), rows(ctl._state),
-                                  rows(ctl._well_formed(meas)))
+    # the lockstep's one call a step: this step's prepare, the last step's conclude (none)
+    _, prep, packed, *_ = lock._vstep(rows(ctl._fixed), rows(ctl._state),
+                                      rows(ctl._well_formed(meas)), rows(ctl._tally),
+                                      np.zeros((3, ctl._flat["prep"].size)), rows(ctl._no_sol))
     prep, packed = np.array(prep), np.array(packed)        # writable copies
     _, red, _, checks = ctl._unpack_qp(packed)              # views into packed
     soft, hard = np.flatnonzero(red.soft[0] > 0), np.flatnonzero(red.soft[0] == 0)

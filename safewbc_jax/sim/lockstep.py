@@ -17,6 +17,11 @@ runs what ``mujoco_loop.rollout`` runs, step by step:
     measurement -> admit -> [prepare, vmapped] -> finish (PIQP per lane)
     -> [conclude, vmapped] -> push -> SimRobot.advance -> plant metrics -> fall test
 
+with one XLA call a step: step k's conclude runs vmapped in the same call as step k+1's
+prepare (the two do not depend on each other; one call costs less than two), so step k's
+metrics are accumulated one call later (a last call after the loop concludes the last
+step), and the push at step k takes its clock tau from step k's prepared rows.
+
 A lane whose robot fell, or whose rollout raised, stops (its row of the vmapped calls
 is still computed, and ignored); unused lanes (fewer rollouts than ``width``) likewise.
 Lane results agree with ``mujoco_loop.rollout`` to rounding (the vmapped XLA kernels are
@@ -51,8 +56,18 @@ class Lockstep:
         self.leader, self.sim = leader, sim
         self.lanes = [leader.lane() for _ in range(self.width)]
         self.sims = [sim.sibling() for _ in range(self.width)]
-        self._vprep = jax.jit(jax.vmap(leader._prepare_fn))
-        self._vconc = jax.jit(jax.vmap(leader._conclude_fn))
+        prepare, conclude = leader._prepare_fn, leader._conclude_fn
+
+        def step(fixed, state, flat, tally, prev_prep, prev_sol):
+            # one call a control step: the last step's conclude and this step's prepare
+            # (independent of each other; one XLA call costs less than two)
+            return (*prepare(fixed, state, flat), *conclude(fixed, tally, prev_prep, prev_sol))
+
+        self._vstep = jax.jit(jax.vmap(step))
+        # where tau sits in the flat Prepared vector: the push's clock, read from prepare's
+        # output before that step's conclude has run (StepRecord.tau is Prepared.tau)
+        flat_prep = leader._flat["prep"]
+        self._tau_at = int(flat_prep.unpack(np.arange(flat_prep.size, dtype=float)).tau)
         self.compile_s = None
 
     def warm_up(self) -> float:
@@ -61,6 +76,14 @@ class Lockstep:
         self.run([None] * self.width, 1)
         self.compile_s = time.perf_counter() - t0
         return self.compile_s
+
+    def _concluded(self, pending, tally, plant, new_tally, packed_out, sole0):
+        """The tally after a step's conclude (for the lanes it ran on) and the plant
+        metrics of that step's physics, with the step's record from the conclude."""
+        concluded, stepped, soles, loop_res, legs = pending
+        tally = np.where(concluded[:, None], np.asarray(new_tally), tally)
+        rec = self.leader._unpack_out(np.asarray(packed_out))[0]
+        return tally, metrics.plant_accumulate(plant, stepped, rec, soles, sole0, loop_res, legs)
 
     def run(self, tasks: list, n_steps: int) -> list:
         """Roll out ``tasks`` (each (params, push or None, perturb_v or None), or None to
@@ -100,6 +123,9 @@ class Lockstep:
         fell_step = np.full(W, -1)
         pushes = [None if i >= n or tasks[i] is None else tasks[i][1] for i in range(W)]
         no_sol = self.leader._no_sol
+        prev_prep = np.zeros((W, self.leader._flat["prep"].size))   # no step before step 0
+        prev_sol = np.tile(no_sol, (W, 1))
+        pending = None      # the last step's (conclude mask, plant mask, soles, loop res, legs)
         for k in range(n_steps):
             if not live.any():
                 break
@@ -112,9 +138,12 @@ class Lockstep:
                     out[i], live[i] = ("failed", f"measurement refused: {reasons[i]}"), False
                 else:
                     flat[i] = f
-            new_state, prep, packed = self._vprep(fixed, state, flat)
+            new_state, prep, packed, new_tally, packed_out = self._vstep(
+                fixed, state, flat, tally, prev_prep, prev_sol)
             prep_np, packed = np.asarray(prep), np.asarray(packed)
             state = np.where(live[:, None], np.asarray(new_state), state)
+            if pending is not None:
+                tally, plant = self._concluded(pending, tally, plant, new_tally, packed_out, sole0)
             sols = np.tile(no_sol, (W, 1))
             cmds = {}
             idx = np.flatnonzero(live)
@@ -129,24 +158,27 @@ class Lockstep:
             except Exception as e:  # noqa: BLE001 - these rollouts fail, with the reason
                 for i in idx.tolist():
                     out[i], live[i] = ("failed", f"{type(e).__name__}: {e}"), False
-            new_tally, packed_out = self._vconc(fixed, tally, prep, sols)
-            tally = np.where(live[:, None], np.asarray(new_tally), tally)
-            rec = self.leader._unpack_out(np.asarray(packed_out))[0]
+            prev_prep, prev_sol, concluded = prep_np, sols, live.copy()
+            tau = prep_np[:, self._tau_at]
             for i in np.flatnonzero(live):
                 try:
                     p = pushes[i]
-                    force = force_at(p, float(rec.tau[i])) if p is not None else 0.0
+                    force = force_at(p, float(tau[i])) if p is not None else 0.0
                     meas[i], legs[i], _ = sims[i].advance(cmds[i].motor, force, k, False)
                 except Exception as e:  # noqa: BLE001
                     out[i], live[i] = ("failed", f"{type(e).__name__}: {e}"), False
             sites = np.stack([s.d.site_xpos for s in sims])
-            soles, loop_res = sites[:, sole_ids], loop_residual(sites, loop_pairs)
-            plant = metrics.plant_accumulate(plant, live, rec, soles, sole0, loop_res, legs)
+            pending = (concluded, live.copy(), sites[:, sole_ids],
+                       loop_residual(sites, loop_pairs), legs.copy())
             idx = np.flatnonzero(live)
             if idx.size:
                 down = idx[fallen(np.stack([meas[i].q for i in idx]),
                                   np.stack([meas[i].v for i in idx]))]
                 fell_step[down], live[down] = k, False
+        if pending is not None:     # the last step's conclude (the prepare's rows unused)
+            *_, new_tally, packed_out = self._vstep(fixed, state, flat, tally, prev_prep,
+                                                    prev_sol)
+            tally, plant = self._concluded(pending, tally, plant, new_tally, packed_out, sole0)
         for i in range(n):
             if out[i] is not None:
                 continue
