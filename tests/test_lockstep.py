@@ -114,7 +114,7 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     # the lockstep's one call a step: this step's prepare, the last step's conclude (none)
     _, prep, packed, *_ = lock._vstep(rows(ctl._fixed), rows(ctl._state),
                                       rows(ctl._well_formed(meas)), rows(ctl._tally),
-                                      np.zeros((3, ctl._flat["prep"].size)), rows(ctl._no_sol))
+                                      *lock._no_previous_step(3))
     prep, packed = np.array(prep), np.array(packed)        # writable copies
     _, red, _, checks = ctl._unpack_qp(packed)              # views into packed
     soft, hard = np.flatnonzero(red.soft[0] > 0), np.flatnonzero(red.soft[0] == 0)

@@ -77,6 +77,12 @@ class Lockstep:
         self.compile_s = time.perf_counter() - t0
         return self.compile_s
 
+    def _no_previous_step(self, rows: int):
+        """The conclude inputs of the one call a step for the step before step 0, where
+        there is none (its results are not used): (prepared rows, solve records)."""
+        return (np.zeros((rows, self.leader._flat["prep"].size)),
+                np.tile(self.leader._no_sol, (rows, 1)))
+
     def _concluded(self, pending, tally, plant, new_tally, packed_out, sole0):
         """The tally after a step's conclude (for the lanes it ran on) and the plant
         metrics of that step's physics, with the step's record from the conclude."""
@@ -123,8 +129,7 @@ class Lockstep:
         fell_step = np.full(W, -1)
         pushes = [None if i >= n or tasks[i] is None else tasks[i][1] for i in range(W)]
         no_sol = self.leader._no_sol
-        prev_prep = np.zeros((W, self.leader._flat["prep"].size))   # no step before step 0
-        prev_sol = np.tile(no_sol, (W, 1))
+        prev_prep, prev_sol = self._no_previous_step(W)
         pending = None      # the last step's (conclude mask, plant mask, soles, loop res, legs)
         for k in range(n_steps):
             if not live.any():
