@@ -4,7 +4,8 @@ What runs: the deployed step's jitted part up to the full QP (``control_step.pre
 gait, robot terms, outputs, barrier rows, contacts, assembly; in, out and packed as
 ``deploy.Controller`` packs them, as flat float64 vectors), at the stand of a scenario.
 The exact elimination and the PIQP checks are left out: they call LAPACK through XLA
-custom calls, which IREE cannot take.
+custom calls, which IREE cannot take. For the same reason only the standing scenarios
+run: walking's rigid swing-leg velocity solves a 5x5 system through LAPACK.
 
 The same function goes to both engines. It is exported to StableHLO (``jax.export``) and
 compiled by IREE for this CPU: llvm-cpu, f64 kept (``--iree-input-demote-f64-to-f32=false``),
@@ -39,7 +40,8 @@ import sys
 import tempfile
 import time
 
-SCENARIOS = ("squat", "bow", "arms", "walk", "push")
+# walking is left out: its rigid swing-leg velocity solves a 5x5 system through LAPACK
+SCENARIOS = ("squat", "bow", "arms")
 _CONCAT = re.compile(r"^(\s*)(%[\w.#]+) = stablehlo\.concatenate (.*?), dim = (\d+) : "
                      r"\((.*?)\) -> (.*)$")
 _STAT = re.compile(r"//\s*(D->H Syncs|Submissions|Dispatches|Executables):\s*(\d+)")
@@ -87,7 +89,7 @@ def _compile(mlir: str, workdir: str, tag: str):
         err = ""
     except CompilerToolError as e:
         vmfb = None
-        err = next((ln.strip() for ln in str(e).splitlines() if "error:" in ln), str(e)[:200])
+        err = next((ln.strip() for ln in str(e).splitlines() if "error:" in ln), str(e))[:300]
     secs = time.perf_counter() - t0
     found = {}
     if vmfb is not None and os.path.exists(stats):
@@ -95,16 +97,21 @@ def _compile(mlir: str, workdir: str, tag: str):
     return vmfb, secs, err, found
 
 
-def _case(rng, ctl, q0, v0, Measurement):
-    """A random state near the stand (hinges +-0.05 rad, rates +-0.2) with both soles
-    loaded, part-way through the motion."""
+def _case(rng, ctl, q0, v0, Measurement, control_step):
+    """(ControllerState, Measurement): a random state near the stand (hinges +-0.05 rad,
+    rates +-0.2) with both soles loaded, part-way through the motion (the clock started at
+    t = 0, the last step one control period ago)."""
     import numpy as np
 
     q, v = q0.copy(), v0.copy()
     q[7:] += rng.uniform(-0.05, 0.05, q.size - 7)
     v = v + rng.uniform(-0.2, 0.2, v.size)
-    t = ctl.scenario.settle + rng.uniform(0.05, 1.0)
-    return q, v, Measurement(q, v, t, np.array([230.0, 230.0]))
+    dt, settle = ctl.control_dt, ctl.scenario.settle
+    t = settle + rng.uniform(0.05, 1.0)
+    st = control_step.init_state(ctl.ctx, q, v, np, np.float64)[0]
+    st = st._replace(t0=np.asarray(0.0), prev_t=np.asarray(t - dt),
+                     prev_tau=np.asarray(t - settle - dt))
+    return st, Measurement(q, v, t, np.array([230.0, 230.0]))
 
 
 def main(argv=None) -> dict:
@@ -163,8 +170,7 @@ def main(argv=None) -> dict:
     rng = np.random.default_rng(0)
     cases = []
     for _ in range(args.states):
-        q, v, meas = _case(rng, ctl, q0, v0, Measurement)
-        st = control_step.init_state(ctx, q, v, np, np.float64)[0]
+        st, meas = _case(rng, ctl, q0, v0, Measurement, control_step)
         cases.append((F["fixed"].pack(fixed_tree), F["state"].pack(st), F["meas"].pack(meas)))
 
     xla = jax.jit(build)
