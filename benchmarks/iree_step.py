@@ -97,7 +97,7 @@ def _compile(mlir: str, workdir: str, tag: str):
     return vmfb, secs, err, found
 
 
-def _case(rng, ctl, q0, v0, Measurement, control_step):
+def _case(rng, ctl, q0, v0):
     """(ControllerState, Measurement): a random state near the stand (hinges +-0.05 rad,
     rates +-0.2) with both soles loaded, part-way through the motion (the clock started at
     t = 0, the last step one control period ago)."""
@@ -108,6 +108,9 @@ def _case(rng, ctl, q0, v0, Measurement, control_step):
     v = v + rng.uniform(-0.2, 0.2, v.size)
     dt, settle = ctl.control_dt, ctl.scenario.settle
     t = settle + rng.uniform(0.05, 1.0)
+    from safewbc_jax import control_step
+    from safewbc_jax.deploy import Measurement
+
     st = control_step.init_state(ctl.ctx, q, v, np, np.float64)[0]
     st = st._replace(t0=np.asarray(0.0), prev_t=np.asarray(t - dt),
                      prev_tau=np.asarray(t - settle - dt))
@@ -133,6 +136,9 @@ def main(argv=None) -> dict:
     except ImportError as e:
         sys.exit(f"IREE is not installed ({e}); install it into this venv with\n"
                  "    pip install iree-base-compiler==3.13.0 iree-base-runtime==3.13.0")
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from alternate import alternating_p50
 
     import jax
     import jax.numpy as jnp
@@ -168,10 +174,11 @@ def main(argv=None) -> dict:
         return F["state"].pack(st, jnp), out_packer.pack((prep, qpm))
 
     rng = np.random.default_rng(0)
+    fixed = F["fixed"].pack(fixed_tree)
     cases = []
     for _ in range(args.states):
-        st, meas = _case(rng, ctl, q0, v0, Measurement, control_step)
-        cases.append((F["fixed"].pack(fixed_tree), F["state"].pack(st), F["meas"].pack(meas)))
+        st, meas = _case(rng, ctl, q0, v0)
+        cases.append((fixed, F["state"].pack(st), F["meas"].pack(meas)))
 
     xla = jax.jit(build)
     mlir = jax.export.export(xla)(*cases[0]).mlir_module()
@@ -186,7 +193,8 @@ def main(argv=None) -> dict:
     vmfb, s_comp, err, stats = _compile(rewritten, workdir, "barriers")
     res = {"scenario": args.scenario, "pinned_cpu": pinned,
            "iree": importlib.metadata.version("iree-base-compiler"),
-           "states": args.states, "custom_calls": [a or b for a, b in customs], "concatenates": n_concat,
+           "states": args.states, "custom_calls": [a or b for a, b in customs],
+           "concatenates": n_concat,
            "as_exported": {"compiles": not err_plain, "error": err_plain,
                            "seconds": round(s_plain, 1)},
            "with_barriers": {"compiles": vmfb is not None, "error": err,
@@ -227,19 +235,8 @@ def main(argv=None) -> dict:
     res["agree"] = worst <= TOL and not where
     res["differing"] = where
     c = cases[0]
-    times = {"xla": [], "iree": []}
-    for r in range(args.rounds):
-        order = ("xla", "iree") if r % 2 == 0 else ("iree", "xla")
-        for eng in order:
-            f = run_xla if eng == "xla" else run_iree
-            for _ in range(20):
-                f(*c)
-            ts = []
-            for _ in range(args.calls):
-                t0 = time.perf_counter()
-                f(*c)
-                ts.append(time.perf_counter() - t0)
-            times[eng].append(float(np.median(ts)) * 1e6)
+    times, _ = alternating_p50({"xla": lambda: run_xla(*c), "iree": lambda: run_iree(*c)},
+                               args.rounds, args.calls)
     res["p50_us_per_round"] = {k: [round(x, 1) for x in v] for k, v in times.items()}
     res["p50_us"] = {k: round(float(np.median(v)), 1) for k, v in times.items()}
     res["iree_over_xla"] = round(res["p50_us"]["iree"] / res["p50_us"]["xla"], 2)

@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
-import time
+import os
+import sys
 
 SCENARIOS = ("squat", "bow", "arms")     # standing: no gait state in the terms
 
@@ -44,6 +44,9 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     if args.calls < 1 or args.rounds < 1 or args.gap_ms < 0:
         ap.error("--calls and --rounds must be at least 1, --gap-ms at least 0")
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from alternate import alternating_p50
 
     import jax
     import jax.numpy as jnp
@@ -119,35 +122,12 @@ def main(argv=None) -> dict:
         mujoco.mj_jacSubtreeCom(mc, dc, jcom, 0)
 
     calls["mujoco"] = mujoco_terms
-    gap = args.gap_ms * 1e-3
-    p50 = {k: [] for k in calls}
-    switches = {k: [0, 0] for k in calls}
-    for r in range(args.rounds):
-        names = list(calls) if r % 2 == 0 else list(calls)[::-1]
-        for name in names:
-            f = calls[name]
-            for _ in range(20):
-                f()
-            ts = []
-            r0 = resource.getrusage(resource.RUSAGE_SELF)
-            for _ in range(args.calls):
-                t0 = time.perf_counter()
-                f()
-                t1 = time.perf_counter()
-                ts.append(t1 - t0)
-                while gap and time.perf_counter() - t1 < gap:
-                    pass
-            r1 = resource.getrusage(resource.RUSAGE_SELF)
-            switches[name][0] += r1.ru_nvcsw - r0.ru_nvcsw
-            switches[name][1] += r1.ru_nivcsw - r0.ru_nivcsw
-            p50[name].append(float(np.median(ts)) * 1e6)
-    n = args.rounds * args.calls
+    p50, switches = alternating_p50(calls, args.rounds, args.calls, args.gap_ms * 1e-3)
     out = {"scenario": args.scenario, "jax": jax.__version__, "pinned_cpu": pinned,
            "gap_ms": args.gap_ms, "kernels": counts,
            "p50_us": {k: round(float(np.median(v)), 1) for k, v in p50.items()},
            "p50_us_per_round": {k: [round(x, 1) for x in v] for k, v in p50.items()},
-           "context_switches_per_call": {k: [round(a / n, 2), round(b / n, 2)]
-                                         for k, (a, b) in switches.items()}}
+           "context_switches_per_call": switches}
     if args.json:
         print(json.dumps(out))
         return out
