@@ -7,7 +7,8 @@ slowest instance of its whole batch stops, while a chunk stops at its own slowes
 batched QP solver (``solvers.jax_qp.solve_batch``) and the closed-loop rollouts
 (``batch.rollout.run_batch``) both use this; their docstrings give the measurements behind
 their default chunk sizes. On an accelerator the widest vmap is what fills the device, so
-the defaults there are None (no chunking).
+the defaults are ``ByPlatform`` chunks: chunked on the CPU, one vmap elsewhere, decided by
+the platform the program is lowered for rather than by the machine that traces it.
 
 The batch is cut into the fewest chunks of at most ``chunk`` instances, all of one size
 (1000 with chunk 64: 16 chunks of 63), so there is one compiled chunk body and no
@@ -21,9 +22,21 @@ stopped), so chunked and unchunked results agree.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 from jax import lax
+
+
+@dataclasses.dataclass(frozen=True)
+class ByPlatform:
+    """A chunk chosen by the platform the program is lowered for: chunks of ``cpu``
+    instances on the CPU, one vmap over the whole batch on every other platform
+    (``lax.platform_dependent``: a CUDA lowering made on a CPU machine shows the GPU's
+    one-vmap program, and each compiled program holds only its own branch)."""
+
+    cpu: int
 
 
 def chunk_layout(batch: int, chunk: int) -> tuple[int, int]:
@@ -45,26 +58,32 @@ def check_chunk(chunk) -> None:
         raise ValueError(f"chunk must be a positive int, None or 'auto', got {chunk!r}")
 
 
-def resolve_chunk(chunk, batch: int, default: int | None) -> int | None:
-    """The chunk a batch of ``batch`` instances runs with: "auto" -> ``default``; None,
-    and any chunk >= the batch, -> None (one vmap: the same compiled function whatever
-    the chunk asked for)."""
+def resolve_chunk(chunk, batch: int, default):
+    """The chunk a batch of ``batch`` instances runs with: "auto" -> ``default`` (an int,
+    None or a ``ByPlatform``); None, and any chunk >= the batch, -> None (one vmap: the
+    same compiled function whatever the chunk asked for)."""
     check_chunk(chunk)
     if chunk == "auto":
         chunk = default
     if chunk is None:
         return None
+    if isinstance(chunk, ByPlatform):
+        return None if chunk.cpu >= batch else chunk
     return None if chunk >= batch else int(chunk)
 
 
 def chunked(impl, chunk: int | None):
     """``impl(batched, *shared)`` (a function of a pytree with a leading batch axis on every
     leaf, and of arguments shared by the whole batch) run on the batch in chunks of at most
-    ``chunk`` instances; None: ``impl`` itself. To be traced inside ``jit``. A batch of at
+    ``chunk`` instances; None: ``impl`` itself; a ``ByPlatform``: by the platform lowered for. To be traced inside ``jit``. A batch of at
     most ``chunk`` is one chunk; callers that want it to be ``impl`` itself (the same
     compiled function as no chunking) pass ``resolve_chunk``'s answer."""
     if chunk is None:
         return impl
+    if isinstance(chunk, ByPlatform):
+        on_cpu = chunked(impl, chunk.cpu)
+        return lambda batched, *shared: lax.platform_dependent(batched, *shared, cpu=on_cpu,
+                                                               default=impl)
 
     def run(batched, *shared):
         B = jax.tree_util.tree_leaves(batched)[0].shape[0]

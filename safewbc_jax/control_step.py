@@ -118,13 +118,15 @@ def hold_torque(x, usable, last_u, blocks: Blocks, xp=np):
 class Context:
     """What a control step is compiled for (static: hashed by identity): the controller
     model, the scenario, the A-ECBF rows on or off, the control period, the motor map,
-    the robot's weight (N, the gait's early-touchdown test)."""
+    the robot's weight (N, the gait's early-touchdown test), and the JAX solver's settings
+    (``precision.qp_settings``)."""
 
     model: robot.RobotModel
     scenario: object
     barrier_on: bool
     control_dt: float
     motors: MotorArrays
+    qp_settings: object = None      # jax_qp.Settings of step_jax's solve (None: float64's)
 
     @property
     def walking(self) -> bool:
@@ -348,7 +350,7 @@ def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState
     from safewbc_jax.solvers import jax_qp
 
     state, prep, qpm = prepare(ctx, params, start, run, state, meas)
-    res = jax_qp.solve(qpm, p_blockdiag=True)
+    res = jax_qp.solve(qpm, p_blockdiag=True, settings=ctx.qp_settings)
     tally, out = conclude(ctx, run, tally, prep, res)
     return state, tally, out
 

@@ -38,7 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax import control_step, metrics
-from safewbc_jax.chunking import check_chunk, chunked, resolve_chunk
+from safewbc_jax import precision as precision_mod
+from safewbc_jax.chunking import ByPlatform, check_chunk, chunked, resolve_chunk
 from safewbc_jax.control_step import Measurement
 from safewbc_jax.deploy import MotorMap
 from safewbc_jax.mjx_import import import_mjx
@@ -66,6 +67,7 @@ class BatchConfig:
     decimate: int = 0
     speed: float = 0.2                # walking: commanded mean forward speed (m/s)
     safe_sets: tuple = ()             # the user's safe sets: "FILE.py:NAME" references
+    precision: str = "float64"        # "float64" or "mixed" (safewbc_jax/precision.py)
 
 
 class BatchError(ValueError):
@@ -130,6 +132,10 @@ def _check_config(cfg: BatchConfig) -> None:
         raise BatchError(f"BatchConfig.speed = {cfg.speed!r}: must be a finite number")
     if int(cfg.decimate) != cfg.decimate or cfg.decimate < 0:
         raise BatchError(f"BatchConfig.decimate = {cfg.decimate!r}: must be an integer >= 0")
+    try:
+        precision_mod.check(cfg.precision, "BatchConfig.precision")
+    except ValueError as e:
+        raise BatchError(str(e)) from None
     if not isinstance(cfg.safe_sets, tuple) or not all(isinstance(r, str) for r in cfg.safe_sets):
         raise BatchError(f"BatchConfig.safe_sets = {cfg.safe_sets!r}: must be a tuple of "
                          "\"FILE.py:NAME\" references (safesets.load)")
@@ -159,14 +165,14 @@ def plant(cfg: BatchConfig) -> Plant:
     # file gets a new plant, and "a.py:X" and "./a.py:X" share one
     refs = tuple(f"{p.resolve()}:{n}" for p, n in map(safesets.split_ref, cfg.safe_sets))
     return _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt), refs,
-                  tuple(safesets.file_digest(r) for r in refs))
+                  tuple(safesets.file_digest(r) for r in refs), cfg.precision)
 
 
 @functools.lru_cache(maxsize=8)
 def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = (),
-           digests: tuple = ()) -> Plant:
+           digests: tuple = (), precision: str = "float64") -> Plant:
     cfg = BatchConfig(scenario=scenario, barrier=barrier, control_dt=control_dt,
-                      safe_sets=safe_sets)
+                      safe_sets=safe_sets, precision=precision)
     mjx = import_mjx()
     ms, mc, model, sm, d = load_at_stand()
     sc = get_scenario(cfg.scenario, cfg.barrier, cfg.safe_sets)
@@ -178,14 +184,14 @@ def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = (
     q0, v0 = (np.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
     start = control_step.start_data(model, sc, q0)
     motors = MotorMap.build(mc)
-    ctx = control_step.Context(model, sc, cfg.barrier, cfg.control_dt, motors.arrays())
+    ctx = control_step.Context(model, sc, cfg.barrier, cfg.control_dt, motors.arrays(),
+                               precision_mod.qp_settings(cfg.precision))
 
-    mx = mjx.put_model(ms)
-    dx = mjx.put_data(ms, d)
-    # put_data and step disagree on some integer dtypes under x64: make the initial data
-    # look like what step returns, so it can be a scan carry.
-    shape = jax.eval_shape(mjx.step, mx, dx)
-    dx = jax.tree_util.tree_map(lambda a, s: jnp.asarray(a, s.dtype), dx, shape)
+    sim_dtype = precision_mod.physics_dtype(cfg.precision)
+    mx, dx = mjx.put_model(ms), mjx.put_data(ms, d)
+    if sim_dtype != jnp.float64:
+        mx, dx = precision_mod.cast_floats((mx, dx), sim_dtype)
+    dx = precision_mod.as_step_output(precision_mod.physics(mjx.step, sim_dtype), mx, dx)
 
     tips, anchors = loop_site_pairs(ms)
     ids = foot_contact_ids(ms)
@@ -298,23 +304,28 @@ class Carry(NamedTuple):
 
 def _sense(pl: Plant, dx, t):
     """MJX Data -> (Measurement, whether a leg touches the other leg)."""
-    q, v = dx.qpos[pl.qpos_idx], dx.qvel[pl.qvel_idx]
+    ft = jnp.float64                  # the controller's dtype, whatever the physics'
+    q, v = dx.qpos[pl.qpos_idx].astype(ft), dx.qvel[pl.qvel_idx].astype(ft)
     if pl.walking:
         soles, legs = sole_forces_and_leg_contact(pl, dx)
+        soles = soles.astype(ft)
     else:
-        soles, legs = jnp.zeros(2, q.dtype), jnp.asarray(False)
-    return Measurement(q, v, jnp.asarray(t, q.dtype), soles), legs
+        soles, legs = jnp.zeros(2, ft), jnp.asarray(False)
+    return Measurement(q, v, jnp.asarray(t, ft), soles), legs
 
 
 def _physics(pl: Plant, dx, motor, push: Push, tau):
     mjx = import_mjx()
     # each simulator actuator's motor torque (a gather: the motors are the actuators, in
     # another order)
-    ctrl = jnp.clip(motor[pl.motor_of_ctrl], pl.ctrl_lo, pl.ctrl_hi)
-    xfrc = jnp.zeros_like(dx.xfrc_applied).at[pl.base_id, :3].set(force_at(push, tau, jnp))
+    dt = dx.ctrl.dtype
+    ctrl = jnp.clip(motor[pl.motor_of_ctrl], pl.ctrl_lo, pl.ctrl_hi).astype(dt)
+    xfrc = jnp.zeros_like(dx.xfrc_applied).at[pl.base_id, :3].set(
+        force_at(push, tau, jnp).astype(dt))
     dx = dx.replace(ctrl=ctrl, xfrc_applied=xfrc)
+    step = precision_mod.physics(mjx.step, dt)
     for _ in range(pl.n_sub):
-        dx = mjx.step(pl.mjx_model, dx)
+        dx = step(pl.mjx_model, dx)
     return dx
 
 
@@ -354,7 +365,7 @@ def _step(pl: Plant, run: Run, params, push: Push, carry: Carry, k):
     rec = out.record
     dx_new = _physics(pl, carry.dx, out.motor, push, rec.tau)
     meas, legs = _sense(pl, dx_new, (k + 1) * pl.cfg.control_dt)
-    sites = dx_new.site_xpos
+    sites = dx_new.site_xpos.astype(jnp.float64)
     loop = jnp.max(jnp.linalg.norm(sites[pl.tip_sites] - sites[pl.anchor_sites], axis=-1))
     plant = metrics.plant_accumulate(carry.plant, live, rec, sites[pl.sole_sites], pl.sole0_xy,
                                      loop, legs, xp=jnp)
@@ -380,10 +391,11 @@ def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, pertu
 
     Without records the time loop is a ``fori_loop`` over the run-time ``n_steps``; with
     records (every ``decimate``-th step, ``n_records`` of them: static) a scan."""
-    dtype = pl.data0.qvel.dtype
+    dtype = jnp.float64               # the controller's; the physics' is pl.data0's
     run = Run(control_step.RunValues(jnp.asarray(settle, dtype), jnp.asarray(speed, dtype),
                                      jnp.asarray(t_half, dtype)), n_steps)
-    dx = pl.data0.replace(qvel=pl.data0.qvel + perturb_v)
+    qvel0 = pl.data0.qvel
+    dx = pl.data0.replace(qvel=(qvel0 + perturb_v).astype(qvel0.dtype))
     meas, legs = _sense(pl, dx, 0.0)
     carry = Carry(dx, *control_step.init_state(pl.ctx, meas.q, meas.v, jnp, dtype),
                   metrics.plant_init(jnp, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
@@ -422,6 +434,66 @@ def default_chunk(backend: str | None = None, n_devices: int | None = None) -> i
     backend = jax.default_backend() if backend is None else backend
     n_devices = len(jax.local_devices()) if n_devices is None else n_devices
     return CPU_CHUNK if backend == "cpu" and n_devices == 1 else None
+
+
+def _arg_shapes(pl: Plant, batch: int) -> tuple:
+    """Shapes and dtypes of the compiled closed loop's arguments at ``batch`` rollouts."""
+    def sds(a):
+        return jax.ShapeDtypeStruct(np.shape(a), jnp.asarray(a).dtype)
+
+    f = jnp.float64
+    batched = jax.tree_util.tree_map(sds, (default_params(pl.cfg.scenario, batch,
+                                                          pl.cfg.safe_sets),
+                                           Push.none(batch), np.zeros((batch, pl.nv_sim))))
+    return batched + (jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), f),
+                      jax.ShapeDtypeStruct((), f), jax.ShapeDtypeStruct((), f))
+
+
+def _checked_batch(batch) -> int:
+    if isinstance(batch, bool) or int(batch) != batch or batch < 1:
+        raise BatchError(f"batch = {batch!r}: must be a positive integer")
+    return int(batch)
+
+
+def export(cfg: BatchConfig, batch: int, platforms=("cuda",), chunk="auto"):
+    """The batched closed loop of ``cfg`` (the function ``run_batch`` compiles, without
+    trajectories) at ``batch`` rollouts, lowered by ``jax.export`` for ``platforms``: no
+    device of that platform is needed and nothing compiles. ``.mlir_module()`` of the
+    answer is the program that platform would run (its custom calls, batch shapes,
+    loops); ``chunk`` as in ``run_batch`` on one device."""
+    pl = plant(cfg)
+    batch = _checked_batch(batch)
+    ch = resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
+    return jax.export.export(_compiled(pl, 0, 0, ch), platforms=list(platforms))(
+        *_arg_shapes(pl, batch))
+
+
+def memory_bytes(cfg: BatchConfig, batch: int, chunk=None) -> int:
+    """Bytes the closed loop of ``cfg`` at ``batch`` rollouts takes on the default device,
+    from the compiled program's memory analysis (arguments + outputs + temporaries; a
+    compile, minutes on a small CPU). ``chunk`` None: one vmap, the accelerator form."""
+    pl = plant(cfg)
+    batch = _checked_batch(batch)
+    ch = resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
+    m = _compiled(pl, 0, 0, ch).lower(*_arg_shapes(pl, batch)).compile().memory_analysis()
+    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
+               - m.alias_size_in_bytes)
+
+
+def largest_batch(fixed: float, per_rollout: float, memory: float,
+                  headroom: float = 0.9) -> int:
+    """The most rollouts whose ``fixed + batch * per_rollout`` bytes fit in ``headroom``
+    of ``memory`` bytes (0 when not even one fits)."""
+    return max(0, int((headroom * memory - fixed) // max(per_rollout, 1.0)))
+
+
+def memory_model(cfg: BatchConfig, batches=(256, 1024)) -> tuple[float, float]:
+    """(fixed bytes, bytes per rollout) of the closed loop of ``cfg`` in its one-vmap
+    (accelerator) form, from ``memory_bytes`` at two batch sizes on the default device."""
+    b0, b1 = (int(b) for b in batches)
+    m0, m1 = memory_bytes(cfg, b0), memory_bytes(cfg, b1)
+    per = (m1 - m0) / (b1 - b0)
+    return m0 - per * b0, per
 
 
 def _finish(pl: Plant, final: Carry) -> dict:
@@ -471,9 +543,10 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
 
     chunk: run the batch ``chunk`` rollouts at a time, one chunk after the other inside
     the one compiled call (``chunking.chunked``; the results do not depend on it); None:
-    one vmap over the whole batch; "auto" (default): ``default_chunk()``, ``CPU_CHUNK``
-    on a CPU with one device, None on accelerators and on several devices (each device
-    then runs one vmap over its share; a chunk given there is not used). A different
+    one vmap over the whole batch; "auto" (default): with one device, ``CPU_CHUNK`` when
+    the program is lowered for a CPU and one vmap when it is lowered for an accelerator
+    (``chunking.ByPlatform``, the choice ``default_chunk`` reports); on several devices
+    None (each device runs one vmap over its share; a chunk given there is not used). A different
     chunk is a different compile.
 
     Why chunks on a CPU: one vmap over a large batch is slower per robot-step (its working
@@ -505,7 +578,7 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     n_steps, settle = pl.schedule(cfg)
     t_half = metrics.half_time(n_steps, settle, cfg.control_dt)
     dec = int(cfg.decimate)
-    ch = resolve_chunk(chunk, padded, default_chunk(n_devices=ndev)) if ndev == 1 else None
+    ch = resolve_chunk(chunk, padded, ByPlatform(CPU_CHUNK)) if ndev == 1 else None
     fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0, ch)
     with jax_qp.blas_threads(1):      # see safewbc_jax/__init__.py
         final, recs = fn(*args, jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle),

@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from safewbc_jax.chunking import chunked, resolve_chunk
+from safewbc_jax.chunking import ByPlatform, chunked, resolve_chunk
 from safewbc_jax.qp_types import QP
 from safewbc_jax.solvers import policy, reduce
 from safewbc_jax.solvers.blas import blas_threads
@@ -246,9 +246,9 @@ def default_chunk(backend: str | None = None) -> int | None:
 
 
 def _resolve_chunk(chunk, batch: int):
-    """The chunk a batch of ``batch`` QPs is solved with (``chunking.resolve_chunk`` with
-    ``default_chunk()`` for "auto")."""
-    return resolve_chunk(chunk, batch, default_chunk())
+    """The chunk a batch of ``batch`` QPs is solved with (``chunking.resolve_chunk``; "auto"
+    is ``ByPlatform(CPU_CHUNK)``: ``default_chunk`` of the platform lowered for)."""
+    return resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
 
 
 def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None = None, p_blockdiag: bool | None = None,
@@ -261,9 +261,9 @@ def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None 
     other in the same jitted call (``chunking.chunked``: equal chunks, padded by copies of
     the last QP; results equal to the unchunked solve's; each chunk runs the batch-level
     ``lax.cond`` of the relaxed solve on its own); None: one vmap over the whole batch;
-    "auto" (default): ``default_chunk()``, ``CPU_CHUNK`` = 64 on a CPU, None on an
-    accelerator. A batch of at most ``chunk`` QPs is one vmap (the same compiled function
-    as chunk None).
+    "auto" (default): ``CPU_CHUNK`` = 64 when lowered for a CPU, one vmap when lowered for
+    an accelerator (``chunking.ByPlatform``). A batch of at most ``chunk`` QPs is one vmap
+    (the same compiled function as chunk None).
 
     Why: on a CPU one vmap over a large batch costs more per QP. Measured with
     ``benchmarks/jax_qp_bench.py`` on the recorded controller QPs (float64, one core of a

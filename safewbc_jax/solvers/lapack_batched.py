@@ -1,4 +1,6 @@
-"""jaxlib's LAPACK kernels under vmap, issued in sub-batches small enough to run inline.
+"""Batched factorisations that fit the backend: on the CPU, jaxlib's LAPACK kernels under
+vmap issued in sub-batches small enough to run inline; on every other platform (CUDA,
+ROCm, TPU) one batched call over the whole vmap.
 
 Why: on the CPU, jaxlib 0.10's batched LAPACK kernels (``lapack_dpotrf_ffi``,
 ``lapack_dtrsm_ffi``, ``lapack_dgetrf_ffi``, ...) split a batch whose work (batch x
@@ -23,6 +25,14 @@ right-hand sides): 3.58 against 3.61 ms, where the same in unrolled jax.numpy to
 
 One vmap level: under a second vmap the outer one batches the inner one's sub-batch
 calls again (``tests/test_lapack_batched.py`` checks the rollout's graph).
+
+Backends: the sub-batching is a workaround for the CPU thread pool alone. On a GPU it
+would serialise each factorisation into hundreds of small cuSOLVER calls per
+interior-point iteration. The choice is made by ``lax.platform_dependent``, so by the
+platform the program is lowered for, not by the machine that traces it: a CUDA lowering
+made on a CPU machine (``jax.export.export(f, platforms=["cuda"])``) holds one batched
+call per factorisation, as the GPU would run it (``tests/test_cuda_lowering.py``), and the
+CPU program is the sub-batched one, its conditional resolved before XLA compiles.
 """
 
 from __future__ import annotations
@@ -80,7 +90,9 @@ def _sub_batched(plain, cost):
     @f.def_vmap
     def _rule(axis_size, in_batched, *args):
         args = _broadcast(args, in_batched, axis_size)
-        return _map_sub_batches(plain, cost(*args), axis_size, args), True
+        sub = lambda *a: _map_sub_batches(plain, cost(*a), axis_size, a)  # noqa: E731
+        whole = lambda *a: jax.vmap(plain)(*a)                              # noqa: E731
+        return lax.platform_dependent(*args, cpu=sub, default=whole), True
 
     return f
 

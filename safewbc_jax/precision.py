@@ -1,0 +1,94 @@
+"""Precision of the batched path (``BatchConfig.precision``): which parts run in float32.
+
+``"float64"`` (default)
+    Everything in float64: MJX physics, the controller's robot terms, the QP, its solver.
+    The mode for CPUs and for GPUs with full-rate float64 (H100, H200, A100).
+
+``"mixed"``
+    float32 where the arithmetic is well conditioned, float64 where it is not:
+
+    - MJX physics (``mjx.step``) in float32;
+    - the JAX solver's interior-point iterations in float32 (``Settings.ipm_dtype``);
+    - in float64: the robot terms and the QP build, the elimination of the equality rows
+      (a Cholesky of the mass matrix, an LU of the constraint-space matrix), the
+      active-set polish and the acceptance check.
+
+    The polish solves the KKT system of the active set the float32 iterations found, in
+    float64, so the torques are float64's wherever that active set is the optimum's.
+
+Why not float32 throughout: the reduced QP in the torques has a Hessian of condition
+number ~1e7 (the contact forces' small regularisation Gamma, seen through the
+elimination), about 1/eps of float32. Measured on the recorded fixture
+(``tests/data/controller_qps.npz``, ``benchmarks/precision.py``): a float32 solve is off by
+up to 8.5% of the torque limits on double support and 27% on walking, with 19 of 282
+walking QPs failed, while the mixed solve agrees with float64 to 1e-12. See
+``benchmarks/README.md`` for the closed-loop figures and which mode to pick.
+
+The physics runs in float32 under ``jax.enable_x64(False)`` while it is traced: MJX makes
+its constants with JAX's default dtype, so under x64 a float32 ``mjx.Data`` would come back
+float64. The measurement is cast to float64 where the controller reads it, and the motor
+torques to float32 where the simulator takes them.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+PRECISIONS = ("float64", "mixed")
+
+
+def check(precision, what: str = "precision") -> None:
+    """ValueError naming ``what`` unless ``precision`` is one of ``PRECISIONS``."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"{what} = {precision!r}: must be one of {', '.join(PRECISIONS)}")
+
+
+def physics_dtype(precision: str):
+    """The float dtype of the simulator state under ``precision``."""
+    check(precision)
+    return jnp.float32 if precision == "mixed" else jnp.float64
+
+
+def qp_settings(precision: str):
+    """The JAX solver's settings under ``precision`` (None: float64's defaults)."""
+    from safewbc_jax.solvers.settings import Settings
+
+    check(precision)
+    return Settings(ipm_dtype="float32") if precision == "mixed" else None
+
+
+def cast_floats(tree, dtype):
+    """Every floating array leaf of ``tree`` as ``dtype``, numpy leaves kept numpy (MJX
+    reads some model fields on the host while tracing); other leaves as they are."""
+    def cast(a):
+        if isinstance(a, (np.ndarray, jax.Array)) and jnp.issubdtype(a.dtype, jnp.floating):
+            return a.astype(np.dtype(dtype))
+        return a
+
+    return jax.tree_util.tree_map(cast, tree)
+
+
+def physics(step, dtype):
+    """``step(model, data) -> data`` traced so that it keeps ``dtype``: float32 under
+    ``jax.enable_x64(False)`` (see the module docstring); float64 as it is."""
+    if jnp.dtype(dtype) == jnp.float64:
+        return step
+
+    def step32(model, data):
+        with jax.enable_x64(False):
+            return step(model, data)
+
+    return step32
+
+
+def as_step_output(step, model, data):
+    """``data`` with each leaf in the dtype ``step`` returns it in (MJX's ``put_data`` and
+    ``step`` disagree on some integer dtypes), so that it can be a loop carry."""
+    shape = jax.eval_shape(step, model, data)
+    return jax.tree_util.tree_map(lambda a, s: jnp.asarray(a, s.dtype), data, shape)
+
+
+__all__ = ["PRECISIONS", "check", "physics_dtype", "qp_settings", "cast_floats", "physics",
+           "as_step_output"]
