@@ -138,6 +138,11 @@ def _finite_float(text: str) -> float:
     return x
 
 
+def _batch_arg(text: str):
+    """--batch of ``safewbc sweep``: an integer >= 1 or 'auto'."""
+    return "auto" if text == "auto" else _int_at_least(1)(text)
+
+
 def _int_at_least(lo: int):
     def parse(text: str) -> int:
         try:
@@ -226,8 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "closed-loop rollouts into a Parquet table; a rerun resumes")
     p.add_argument("spec", help="sweep spec TOML (see sweeps/)")
     p.add_argument("--out", required=True, help="sweep directory (table, manifest)")
-    p.add_argument("--batch", type=_int_at_least(1), default=None,
-                   help="rollouts per chunk (default: the spec's sweep.batch, else 64)")
+    p.add_argument("--batch", type=_batch_arg, default=None,
+                   help="rollouts per chunk (default: the spec's sweep.batch, else 64); "
+                   "'auto': on an accelerator, the most that fit in its memory")
     p.add_argument("--seed", type=_int_at_least(0), default=None,
                    help="seed of the perturbations (default: the spec's sweep.seed, else 0)")
     p.add_argument("--max-chunks", type=_int_at_least(1), default=None,

@@ -357,3 +357,42 @@ def test_tune_spec_checks(tmp_path):
                     "g.toml")
     with pytest.raises(SpecError, match=r"grid axes \['mu'\] are neither"):
         _distribution(bad, "left_fist")
+
+
+def test_precision_key(tmp_path):
+    """sweep.precision: validated by name; "float64" keeps the fingerprint of a spec
+    without the key (sweeps begun before it resume), "mixed" is another sweep; the
+    mujoco engine refuses "mixed" before anything runs."""
+    from safewbc_jax.sweeps.run import run_sweep
+
+    base = spec_from(tmp_path, GOOD, "a.toml")
+    same = spec_from(tmp_path, GOOD.replace("[sweep]\n", "[sweep]\nprecision = \"float64\"\n"), "b.toml")
+    mixed = spec_from(tmp_path, GOOD.replace("[sweep]\n", "[sweep]\nprecision = \"mixed\"\n"), "c.toml")
+    assert base.precision == "float64" and mixed.precision == "mixed"
+    assert base.fingerprint() == same.fingerprint() != mixed.fingerprint()
+    with pytest.raises(SpecError, match="sweep.precision = 'half'"):
+        spec_from(tmp_path, GOOD.replace("[sweep]\n", "[sweep]\nprecision = \"half\"\n"), "d.toml")
+    with pytest.raises(ValueError, match="mjx engine"):
+        run_sweep(mixed, tmp_path / "out", engine="mujoco", quiet=True)
+    assert not (tmp_path / "out").exists()
+
+
+def test_auto_batch_on_the_cpu_and_on_resume(tmp_path):
+    """--batch auto: the spec's batch on a CPU (and with the mujoco engine); a sweep
+    directory already begun keeps its manifest's batch. (On an accelerator it comes from
+    rollout.memory_model; benchmarks/accelerator.py exercises that model on the CPU.)"""
+    import json
+
+    from safewbc_jax.cli import _batch_arg
+    from safewbc_jax.sweeps.run import auto_batch
+    from safewbc_jax.sweeps.table import MANIFEST
+
+    spec = spec_from(tmp_path, GOOD)
+    assert auto_batch(spec, tmp_path / "new", "mjx", quiet=True) == spec.batch
+    assert auto_batch(spec, tmp_path / "new", "mujoco", quiet=True) == spec.batch
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / MANIFEST).write_text(json.dumps({"batch": 7}))
+    assert auto_batch(spec, tmp_path / "old", "mjx", quiet=True) == 7
+    assert _batch_arg("auto") == "auto" and _batch_arg("12") == 12
+    with pytest.raises(Exception, match="expected an integer >= 1"):
+        _batch_arg("0")

@@ -51,13 +51,43 @@ def real_executor():
     def execute(spec: SweepSpec, params, push: dict, perturb_v: np.ndarray) -> dict:
         cfg = BatchConfig(scenario=spec.scenario, barrier=spec.barrier, duration=spec.duration,
                           settle=spec.settle, control_dt=spec.control_dt, decimate=0,
-                          safe_sets=tuple(spec.safe_sets))
+                          safe_sets=tuple(spec.safe_sets), precision=spec.precision)
         p = Push(force=np.stack([push["fx"], push["fy"], push["fz"]], axis=1),
                  at=np.asarray(push["at"], float), duration=np.asarray(push["duration"], float))
         metrics, _ = run_batch(cfg, params, p, perturb_v)
         return metrics
 
     return execute
+
+
+def auto_batch(spec: SweepSpec, out: Path, engine: str, quiet=False) -> int:
+    """``--batch auto``: rollouts per chunk. A sweep already begun in ``out`` keeps its
+    manifest's batch (it resumes); the mujoco engine and a CPU take the spec's
+    ``sweep.batch``; on an accelerator, the most rollouts whose closed loop fits in 90% of
+    the device's memory (``rollout.memory_model``: the compiled program's memory analysis
+    at 256 and 1,024 rollouts, two compiles), at most the sweep's rollouts."""
+    import jax
+
+    if (Path(out) / table_mod.MANIFEST).exists():
+        try:
+            return int(table_mod.read_manifest(out)["batch"])
+        except (KeyError, ValueError, table_mod.TableError):
+            pass
+    dev = jax.local_devices()[0]
+    if engine == "mujoco" or dev.platform == "cpu":
+        return spec.batch
+    from safewbc_jax.batch.rollout import BatchConfig, largest_batch, memory_model
+
+    cfg = BatchConfig(scenario=spec.scenario, barrier=spec.barrier, duration=spec.duration,
+                      settle=spec.settle, control_dt=spec.control_dt,
+                      safe_sets=tuple(spec.safe_sets), precision=spec.precision)
+    fixed, per = memory_model(cfg)
+    limit = (dev.memory_stats() or {}).get("bytes_limit", 0)
+    batch = max(1, min(spec.n_rollouts, largest_batch(fixed, per, limit)))
+    if not quiet:
+        print(f"[sweep] --batch auto: {batch} rollouts per chunk ({per / 1e6:.2f} MB each, "
+              f"{limit / 1e9:.0f} GB on {dev.device_kind})", file=sys.stderr, flush=True)
+    return batch
 
 
 def sim_model():
@@ -147,8 +177,10 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     if not (hosts >= 1 and 0 <= host_index < hosts):
         raise ValueError(f"host index {host_index} of {hosts} hosts: expected 0 <= index < hosts")
     out = Path(out)
-    batch = spec.batch if batch is None else int(batch)
     seed = spec.seed if seed is None else int(seed)
+    if batch == "auto":
+        batch = auto_batch(spec, out, pool_mod.resolve_engine(engine), quiet or progress)
+    batch = spec.batch if batch is None else int(batch)
     if batch < 1:
         raise ValueError(f"--batch must be >= 1, got {batch}")
     if seed < 0:
@@ -157,6 +189,9 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     engine = pool_mod.resolve_engine(engine)
     if engine == "mujoco":
         workers = pool_mod.check_workers(workers)
+        if spec.precision != "float64":
+            raise ValueError(f"sweep.precision = {spec.precision!r} is the mjx engine's "
+                             f"(--engine mjx); the mujoco engine runs float64")
     elif workers is not None:
         raise ValueError(f"--workers {workers}: only the mujoco engine has workers, and "
                          f"--engine {asked} runs mjx here (--engine mujoco)")

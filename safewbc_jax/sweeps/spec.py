@@ -14,6 +14,7 @@ A spec is a TOML file::
     target = "left_fist"     # the barrier the report and tune-poles look at
     safe_sets = ["my_barrier.py:NAME"]   # the user's safe sets (paths from the spec's folder);
                                          # their poles and thresholds are axes like any other
+    precision = "float64"    # or "mixed" (mjx engine only): safewbc_jax/precision.py
 
     [params]                 # fixed ControllerParams overrides, as in ``--params FILE``
     mu = 0.6
@@ -72,7 +73,8 @@ from safewbc_jax.push import PUSH_AT, PUSH_FOR
 SECTIONS = ("sweep", "params", "grid", "push", "perturb", "tune")
 SWEEP_KEYS = {"scenario": str, "barrier": bool, "duration": float, "settle": float,
               "control_dt": float, "repeats": int, "seed": int, "batch": int,
-              "violation_tol": float, "target": str, "description": str, "safe_sets": list}
+              "violation_tol": float, "target": str, "description": str, "safe_sets": list,
+              "precision": str}
 PUSH_KEYS = ("magnitude", "direction", "at", "duration")
 PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": PUSH_AT, "duration": PUSH_FOR}
 PERTURB_KEYS = ("base_linear", "base_angular", "joints")
@@ -129,6 +131,7 @@ class SweepSpec:
     rows: tuple | None = None    # explicit settings instead of the grid product
     noise_period: int | None = None  # rollout k draws perturbation k % noise_period
     safe_sets: tuple = ()        # the user's safe sets, "ABSOLUTE/FILE.py:NAME"
+    precision: str = "float64"   # the mjx engine's BatchConfig.precision
 
     @property
     def n_settings(self) -> int:
@@ -144,7 +147,8 @@ class SweepSpec:
         """Hash of everything that decides the rollouts (not the seed, batch, path or
         description): a sweep directory holds one spec."""
         d = {k: v for k, v in dataclasses.asdict(self).items()
-             if k not in ("path", "seed", "batch", "description", "tune", "safe_sets")}
+             if k not in ("path", "seed", "batch", "description", "tune", "safe_sets")
+             and not (k == "precision" and v == "float64")}   # hashes from before the key
         if self.safe_sets:   # by name and file content, not by where the file lies
             from safewbc_jax import safesets
 
@@ -392,6 +396,13 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
     batch = num("batch", positive=True, integer=True) or 64
     tol = num("violation_tol", nonneg=True) or 0.0
     barrier_on = sw.get("barrier", True)
+    prec = sw.get("precision", "float64")
+    from safewbc_jax import precision as precision_mod
+
+    try:
+        precision_mod.check(prec, "sweep.precision")
+    except ValueError as e:
+        raise SpecError(f"{src}: {e}") from None
     enforced = barriers if barrier_on else ()
     all_b = tuple(barriers) + tuple(monitors)
     target = sw.get("target")
@@ -491,7 +502,8 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
                      description=sw.get("description", ""), params=params, axes=axes,
                      push=push, perturb=perturb, tune=tune, barriers=tuple(enforced),
                      monitors=tuple(monitors) + (() if barrier_on else tuple(barriers)),
-                     outputs=outputs, pole_counts=pole_counts, safe_sets=safe_sets)
+                     outputs=outputs, pole_counts=pole_counts, safe_sets=safe_sets,
+                     precision=prec)
     if spec.n_rollouts > MAX_ROLLOUTS:
         raise SpecError(f"{src}: the grid times sweep.repeats gives {spec.n_rollouts} rollouts "
                         f"(more than {MAX_ROLLOUTS}); shrink the grid")
