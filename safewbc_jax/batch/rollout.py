@@ -24,7 +24,13 @@ last torque; a measurement the controller refuses (a diverging simulation) is co
 The batch is sharded over the process's devices (``jax.local_devices()``, leading axis),
 padded to a multiple of the device count. On a CPU with one device it runs in chunks of
 ``CPU_CHUNK`` rollouts, one after the other inside the compiled call (``run_batch``'s
-``chunk``).
+``chunk``); the chunks and the sub-batched factorisations are chosen by the platform the
+program is lowered for (``chunking.ByPlatform``, ``solvers/lapack_batched.py``), so that
+``export(cfg, batch, ("cuda",))`` on a CPU machine shows the GPU's one-vmap program.
+
+``BatchConfig.precision`` "mixed" runs MJX physics and the QP's interior point in float32
+and the rest in float64 (``safewbc_jax/precision.py``); the controller side, the carry's
+controller state and the metrics stay float64 in either mode.
 """
 
 from __future__ import annotations
