@@ -481,15 +481,18 @@ def memory_bytes(cfg: BatchConfig, batch: int, chunk=None) -> int:
     pl = plant(cfg)
     batch = _checked_batch(batch)
     ch = resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
-    # not through the persistent compilation cache: serialising this AOT executable
-    # aborted the process once in the full suite (not reproduced alone); jit reuses the
-    # executable in memory for the run that follows
-    was = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
+    # kept out of the persistent compilation cache: serialising this AOT executable
+    # crashed the process inside XLA (an abort here, a segfault in CI) in full-suite runs,
+    # never alone. JAX decides once per process whether the cache is used, so turning the
+    # cache off here would do nothing; the minimum compile time for a write is read at
+    # each write, so an infinite one skips it. jit reuses this executable in memory for
+    # the run that follows.
+    was = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
     try:
         m = _compiled(pl, 0, 0, ch).lower(*_arg_shapes(pl, batch)).compile().memory_analysis()
     finally:
-        jax.config.update("jax_enable_compilation_cache", was)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", was)
     return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
                - m.alias_size_in_bytes)
 
