@@ -5,6 +5,8 @@ import jax
 import numpy as np
 import pytest
 
+pytest_plugins = ["pytester"]
+
 jax.config.update("jax_enable_x64", True)
 
 # JAX's persistent compilation cache for the whole session and its subprocesses (the
@@ -14,6 +16,31 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       os.path.join(tempfile.gettempdir(), "safewbc-jax-test-xla-cache"))
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 5.0)
+
+# Two tiers: `pytest -m "not slow"` is the fast one (minutes), the full suite adds the
+# tests marked slow (those that compile an MJX loop, run a closed loop or start a
+# subprocess run). An unmarked test whose setup and call together take longer than this
+# fails and names itself, so the fast tier stays fast. Fixtures are session-scoped and
+# shared, so the first test to use one pays its setup: mark that test slow too.
+FAST_LIMIT_S = float(os.environ.get("SAFEWBC_FAST_LIMIT_S", "20"))
+_SETUP_S = pytest.StashKey[float]()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    rep = outcome.get_result()
+    if rep.when == "setup":
+        item.stash[_SETUP_S] = call.duration
+        return
+    if rep.when != "call" or not rep.passed or item.get_closest_marker("slow"):
+        return
+    took = item.stash.get(_SETUP_S, 0.0) + call.duration
+    if took > FAST_LIMIT_S:
+        rep.outcome = "failed"
+        rep.longrepr = (f"{item.nodeid} took {took:.1f} s (setup and call) without the "
+                        f"'slow' marker: mark it @pytest.mark.slow, or make it faster "
+                        f"(the fast tier's limit is {FAST_LIMIT_S:g} s a test)")
 
 
 @pytest.fixture(scope="session")

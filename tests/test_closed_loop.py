@@ -46,6 +46,7 @@ def test_arms_barrier_keeps_left_fist_safe(tmp_path, barrier, request):
         assert m["barrier_min"]["left_fist"] < -0.01
 
 
+@pytest.mark.slow
 def test_accumulated_metrics_match_the_logged_time_series(arms_deployment):
     """The metrics accumulated inside the control step and the plant loop
     (``metrics.control_accumulate`` / ``plant_accumulate``) against a direct evaluation

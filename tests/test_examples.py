@@ -15,6 +15,8 @@ import pytest
 from safewbc_jax import scenarios
 from safewbc_jax.sim.mujoco_loop import RunConfig, run
 
+pytestmark = pytest.mark.slow      # MuJoCo closed loops, four of them
+
 ROOT = Path(__file__).resolve().parents[1]
 LEAN = f"{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"
 SPEED = f"{ROOT / 'examples' / 'squat_com_velocity.py'}:COM_SPEED"

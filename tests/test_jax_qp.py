@@ -261,6 +261,7 @@ def test_user_level_jit_vmap_matches_solve_batch(data, jax_result):
 
 # ---------------------------------------------------------------- chunked batches
 
+@pytest.mark.slow
 def test_chunked_batch_matches_unchunked(data):
     """``solve_batch(chunk=8)`` on 20 QPs (3 chunks of 7, padded with a copy of the last
     QP) gives the unchunked solve's results: the padding is stripped and no QP's result
@@ -291,6 +292,7 @@ def test_chunked_batch_matches_unchunked(data):
 
 # ---------------------------------------------------------------- float32
 
+@pytest.mark.slow
 def test_float32_path(data, piqp_ref):
     """float32 (the accelerator option) at loose tolerances: the reduced Hessian's
     condition number (~1e7) is about 1/eps32, so X is only good to ~1e-2 relative

@@ -143,6 +143,7 @@ def test_every_call_runs_inline(batch):
     assert max(_work(t, s) for t, s in _lapack_calls(plain.lower(S, B).as_text())) >= lb.MIN_WORK
 
 
+@pytest.mark.slow
 def test_batched_rollout_has_no_controller_call_that_waits_on_the_pool():
     """The walking closed loop at the CPU chunk (64 rollouts): every LAPACK call of the
     controller runs inline, so none of them can hold a pool thread. The only ones over

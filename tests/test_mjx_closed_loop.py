@@ -43,6 +43,7 @@ def squat():
     return met, rec, log, info
 
 
+@pytest.mark.slow
 def test_squat_com_matches_deployment_path(squat):
     met, rec, log, info = squat
     assert not info["fell"] and not met["fell"][0]
@@ -72,6 +73,7 @@ def arms(arms_deployment):
     return met, arms_deployment[0]    # the MuJoCo + PIQP run: conftest, 8 s after 1 s
 
 
+@pytest.mark.slow
 def test_arms_barrier_minima_match_deployment_path(arms):
     met, m_c = arms
     assert m_c["duration_s"] == pytest.approx(ARMS_S) and m_c["settle_s"] == SETTLE
@@ -86,6 +88,7 @@ def test_arms_barrier_minima_match_deployment_path(arms):
     assert met["qp_failed"][0] == 0
 
 
+@pytest.mark.slow
 def test_fallen_rollout_is_flagged_and_isolated(arms):
     met, _ = arms
     assert met["fell"].tolist() == [False, True, False]
@@ -113,6 +116,7 @@ def walk(short_walk_deployment):
     return met, rec, m_c, np.load(out / "log.npz")
 
 
+@pytest.mark.slow
 def test_walk_matches_deployment_path(walk):
     """The gait's domain switches, the rigid swing-leg rates and the contact forces that
     end each step, in JAX, against the MuJoCo loop's host-side gait. Measured: the same

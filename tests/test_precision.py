@@ -42,6 +42,7 @@ def _module(path: Path, name: str):
     return mod
 
 
+@pytest.mark.slow
 def test_mixed_solve_gives_float64_torques_on_every_recorded_qp():
     d = _module(ROOT / "tests/data/qp_fixture.py", "qp_fixture").load(
         ROOT / "tests/data/controller_qps.npz")

@@ -58,6 +58,8 @@ N, MI, ME, NB = 5, 3, 2, 4
 ATOL_JAX = 1e-8
 ATOL_PIQP = 1e-6
 CLASSES = list(itertools.product((False, True), repeat=2))       # (inequalities, equalities)
+# the fast tier keeps the class with both (G+A+); the other three compile again (slow tier)
+CLASS_PARAMS = [pytest.param(c, marks=() if all(c) else pytest.mark.slow) for c in CLASSES]
 BOUNDS = list(itertools.product((False, True), repeat=2))        # (lb given, ub given)
 
 
@@ -189,7 +191,7 @@ def _solvers():
 
 # ---------------------------------------------------------------- one QP, 16 subsets
 
-@pytest.mark.parametrize("cls", CLASSES, ids=_label)
+@pytest.mark.parametrize("cls", CLASS_PARAMS, ids=_label)
 def test_single_qp_every_subset(cls):
     ineq, eq = cls
     for k, (lower, upper) in enumerate(BOUNDS):
@@ -242,7 +244,7 @@ def _stack(members, ineq, eq, lower, upper):
     return {k: np.stack([kw[k] for kw in kws]) for k in kws[0]}
 
 
-@pytest.mark.parametrize("cls", CLASSES, ids=_label)
+@pytest.mark.parametrize("cls", CLASS_PARAMS, ids=_label)
 def test_batch_every_subset(cls):
     ineq, eq = cls
     for lower, upper in BOUNDS:

@@ -41,6 +41,7 @@ def test_constraint_drift_equals_the_standalone_drifts(rm, states):
                                    rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_terms_vmap_over_states(rm, states):
     sc = scenarios.get_scenario("squat")
     qs = jnp.stack([jnp.asarray(q) for q, _ in states[:3]])
