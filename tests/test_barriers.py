@@ -414,6 +414,7 @@ def _start_check(rm, sc, s, q, v, threshold, poles):
                                    batched=False)
 
 
+@pytest.mark.slow
 def test_check_poles_on_the_robot(rm, fist, safe_rest_q, ctrl_mj):
     left = fist["left"]
     sc = scenarios.get_scenario("arms")

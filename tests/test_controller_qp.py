@@ -148,6 +148,7 @@ def test_params_overrides_validated(tmp_path):
         assert str(f) in str(e.value)
 
 
+@pytest.mark.slow
 def test_bad_start_for_barrier_rejected_before_compile(tmp_path):
     """A threshold that puts the start outside the safe set (Theorem 1 inapplicable) is a
     clear error from the CLI, before any controller compiles."""

@@ -241,6 +241,7 @@ def test_infeasible_statuses_and_fallback_agree_with_piqp(data, jax_result):
 
 # ---------------------------------------------------------------- jit / vmap at user level
 
+@pytest.mark.slow
 def test_user_level_jit_vmap_matches_solve_batch(data, jax_result):
     """``jax_qp.solve`` is a single-QP function: the caller's own jit(vmap(...)) gives the
     batched results (here 6 recorded QPs, a soft- and a hard-infeasible one)."""
@@ -320,6 +321,7 @@ def test_float32_path(data, piqp_ref):
 
 # ---------------------------------------------------------------- solve_qp, both solvers
 
+@pytest.mark.slow
 def test_solve_qp_single_both_solvers(data, piqp_ref):
     nrec = data["nrec"]
     names = ("P", "q", "G", "h", "A", "b", "lb", "ub")
@@ -345,6 +347,7 @@ def test_solve_qp_single_both_solvers(data, piqp_ref):
         solve_qp(data["qps"]["P"][0], data["qps"]["q"][0], G=data["qps"]["G"][0])
 
 
+@pytest.mark.slow
 def test_solve_qp_generic_qps():
     """QPs without the controller's structure go through the generic (null-space) path;
     a batch of them, with and without equalities, an unbounded one and an infeasible one,
@@ -383,6 +386,7 @@ def test_solve_qp_generic_qps():
     assert s1 == s2 == SolveStatus.SOLVED and np.abs(x1 - x2).max() <= 1e-7
 
 
+@pytest.mark.slow
 def test_iteration_limit_status(data):
     """Too few iterations: MAX_ITER for the QP as posed and for its relaxation, and the
     step is reported failed (x all NaN), never a half-converged x."""

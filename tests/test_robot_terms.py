@@ -155,6 +155,7 @@ def test_integrate_matches_mujoco(ctrl_mj, states):
         np.testing.assert_allclose(out, ref, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_vmap_over_states(rm, states, jitted):
     qs = jnp.stack([jnp.asarray(q) for q, _ in states[:4]])
     batched = jax.vmap(robot.mass_matrix, in_axes=(None, 0))(rm, qs)

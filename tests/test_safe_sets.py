@@ -102,6 +102,7 @@ def stand(ctrl_mj):
     return jnp.asarray(ctrl_mj.key_qpos[0]), jnp.zeros(ctrl_mj.nv)
 
 
+@pytest.mark.slow
 def test_theorem_1_is_checked_for_user_safe_sets(rm, stand):
     """deploy.check_barrier_poles, what Controller.start runs before it compiles."""
     q, _ = stand

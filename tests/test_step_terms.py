@@ -17,7 +17,7 @@ def states(ctrl_mj):
     return [random_state(ctrl_mj, rng) for _ in range(6)]
 
 
-@pytest.mark.parametrize("name", ["squat", "arms"])
+@pytest.mark.parametrize("name", ["squat", pytest.param("arms", marks=pytest.mark.slow)])
 def test_closed_form_terms_equal_the_ad_terms(rm, states, name):
     sc = scenarios.get_scenario(name)
     closed = jax.jit(lambda q, v: controller.robot_terms(rm, sc, q, v))

@@ -41,7 +41,7 @@ def _domain(stance, heading=0.0):
     return {k: jnp.asarray(v) for k, v in g.domain().items()}
 
 
-@pytest.mark.parametrize("stance", [LEFT, RIGHT])
+@pytest.mark.parametrize("stance", [LEFT, pytest.param(RIGHT, marks=pytest.mark.slow)])
 def test_swing_outputs_select_the_foot_opposite_the_stance(ctrl_mj, rm, stance):
     rng = np.random.default_rng(3)
     pos_out, rot_out = walking.SwingFootPosition(), walking.SwingFootOrientation()
