@@ -54,7 +54,7 @@ def _engine_args(p) -> None:
     p.add_argument("--engine", choices=("auto", "mjx", "mujoco"), default="auto",
                    help="mjx: batched MJX rollouts (JAX QP solver); mujoco: one deployment "
                    "loop (C MuJoCo + PIQP) per CPU; auto: mjx on an accelerator, on a CPU "
-                   "the faster of the two as measured (README, 'Two engines')")
+                   "the faster of the two as measured (docs/sweeps.md, 'Two engines')")
     p.add_argument("--workers", type=_int_at_least(1), default=None,
                    help="--engine mujoco: worker processes, one pinned to each CPU "
                    "(default: one per CPU this process may use)")

@@ -59,7 +59,7 @@ MAX_SPEED = 20.0
                    meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class Measurement:
-    """What the robot's estimator hands over each control step (README, Conventions):
+    """What the robot's estimator hands over each control step (docs/models.md, Conventions):
     q (37,), v (36,), the soles' normal forces on the floor (2,) in N (left, right; None is
     allowed in double-support scenarios), and the time stamp t in s (any clock that
     advances; the controller's clock starts at the first good measurement)."""

@@ -328,7 +328,7 @@ class PoolExecutor:
 
 def resolve_engine(engine: str) -> str:
     """``--engine`` -> the engine that runs: "mjx" or "mujoco" as given; "auto": ``mjx`` on
-    an accelerator and ``AUTO_CPU_ENGINE`` on a CPU (README, "Two engines")."""
+    an accelerator and ``AUTO_CPU_ENGINE`` on a CPU (docs/sweeps.md, "Two engines")."""
     if engine not in ENGINES:
         raise ValueError(f"--engine {engine!r}: one of {', '.join(ENGINES)}")
     if engine != "auto":
@@ -339,6 +339,6 @@ def resolve_engine(engine: str) -> str:
 
 
 # what "auto" runs on a CPU: the engine with the higher robot-steps/s in
-# benchmarks/sweep_engines.py on the 2-core development machine (README: since the
-# lockstep workers, mujoco 1.24x mjx)
+# benchmarks/sweep_engines.py on the 2-core development machine (benchmarks/README.md:
+# mujoco about 2x mjx)
 AUTO_CPU_ENGINE = "mujoco"
