@@ -29,7 +29,7 @@ _FLOOR, _LEFT, _RIGHT = 1, 2, 4
 # Lower-leg bodies that get leg-on-leg collision capsules (per side, name suffix).
 LEG_COLLISION_BODIES = ("shin", "tarsus", "toe-roll")
 
-# Simulation options. See models/README.md and the foundation notes: implicit Euler
+# Simulation options. See ../shared/digit/README.md (the batch-256 hang): implicit Euler
 # damping off, no damping and a small armature on the rod ball joints keep the batched
 # XLA CPU step from hanging at batch 256.
 SIM_TIMESTEP = 0.001

@@ -11,7 +11,7 @@ The reference is one of:
 
 * ``reference(tau, start) -> y^d(tau)``: a smooth function of the motion time; its
   derivatives are taken by AD and, before the motion (tau < 0), it is blended from the
-  measured start value (``Scenario.desired``);
+  measured start value (``Scenario.desired_at``);
 * ``planned(model, tau, start, q, v, domain) -> (y^d, y^d_dot, y^d_ddot)``: a reference
   planned from the measured state at each control step (the ALIP swing foot).
 
