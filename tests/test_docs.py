@@ -5,6 +5,7 @@ anchor, or a docstring mkdocstrings cannot read breaks this test.
 `python -m mkdocs build --strict` takes a few seconds (mkdocstrings reads the sources
 statically: nothing is imported or compiled)."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -42,7 +43,7 @@ def site(tmp_path_factory):
         [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(ROOT / "mkdocs.yml"),
          "-d", str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
-        env={**__import__("os").environ, "NO_MKDOCS_2_WARNING": "1"})
+        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
     assert res.returncode == 0, (
         f"mkdocs build --strict failed (rc {res.returncode}):\n{res.stdout}\n{res.stderr}")
     return out

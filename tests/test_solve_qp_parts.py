@@ -58,10 +58,10 @@ N, MI, ME, NB = 5, 3, 2, 4
 ATOL_JAX = 1e-8
 ATOL_PIQP = 1e-6
 CLASSES = list(itertools.product((False, True), repeat=2))       # (inequalities, equalities)
-# the fast tier keeps the class with both (G+A+) for one QP; the other classes, and the
-# batched solves, compile again (slow tier; test_jax_qp.py solves the recorded QPs batched)
+# the fast tier keeps the class with both (G+A+) for one QP; the other classes compile
+# again (slow tier), and so do the batched solves (test_jax_qp.py solves the recorded QPs
+# batched in the fast tier)
 CLASS_PARAMS = [pytest.param(c, marks=() if all(c) else pytest.mark.slow) for c in CLASSES]
-SLOW_CLASS_PARAMS = [pytest.param(c, marks=pytest.mark.slow) for c in CLASSES]
 BOUNDS = list(itertools.product((False, True), repeat=2))        # (lb given, ub given)
 
 
@@ -246,7 +246,8 @@ def _stack(members, ineq, eq, lower, upper):
     return {k: np.stack([kw[k] for kw in kws]) for k in kws[0]}
 
 
-@pytest.mark.parametrize("cls", SLOW_CLASS_PARAMS, ids=_label)
+@pytest.mark.slow
+@pytest.mark.parametrize("cls", CLASSES, ids=_label)
 def test_batch_every_subset(cls):
     ineq, eq = cls
     for lower, upper in BOUNDS:
