@@ -138,3 +138,42 @@ def test_accelerator_benchmark_runs_small_on_the_cpu():
     bench = _module(ROOT / "benchmarks/accelerator.py", "accelerator_bench")
     with pytest.raises(SystemExit):
         bench.main(["--batches", "1024"])          # one batch: no memory model
+
+
+def test_memory_bytes_writes_nothing_to_the_compilation_cache(monkeypatch, tmp_path):
+    """``rollout.memory_bytes`` keeps its AOT executable out of the persistent compilation
+    cache (serialising it crashed the suite's process; CHANGELOG, 2026-12-05) and puts the
+    cache's setting back. The closed loop is replaced by a small program here: what is
+    tested is the cache write, not the loop (whose memory figures the accelerator smoke
+    test checks). The same program jitted outside memory_bytes is written, so the cache
+    is live in this test."""
+    from jax._src import compilation_cache
+    from safewbc_jax.batch import rollout as R
+
+    def small_program(x):
+        return jnp.linalg.cholesky(x @ x.T + jnp.eye(x.shape[0])).sum()
+
+    def small(pl, decimate, n_records, chunk):
+        return jax.jit(small_program)
+
+    def written():          # the cache's entries of small_program (named after it)
+        return [p for p in tmp_path.rglob("*small_program*") if p.is_file()]
+
+    monkeypatch.setattr(R, "_compiled", small)
+    monkeypatch.setattr(R, "_arg_shapes",
+                        lambda pl, batch: (jax.ShapeDtypeStruct((batch, batch), jnp.float64),))
+    compilation_cache.reset_cache()
+    was_dir = jax.config.jax_compilation_cache_dir
+    was_min = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    try:
+        assert R.memory_bytes(R.BatchConfig("arms", duration=0.1), 7) > 7 * 7 * 8
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
+        assert not written()
+        small(None, 0, 0, None)(jnp.ones((9, 9)))          # a write the cache does make
+        assert written()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", was_dir)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", was_min)
+        compilation_cache.reset_cache()
