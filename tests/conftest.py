@@ -22,7 +22,11 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 5.0)
 # subprocess run). An unmarked test whose setup and call together take longer than this
 # fails and names itself, so the fast tier stays fast. Fixtures are session-scoped and
 # shared, so the first test to use one pays its setup: mark that test slow too.
-FAST_LIMIT_S = float(os.environ.get("SAFEWBC_FAST_LIMIT_S", "20"))
+try:
+    FAST_LIMIT_S = float(os.environ.get("SAFEWBC_FAST_LIMIT_S", "20"))
+except ValueError:
+    raise pytest.UsageError("SAFEWBC_FAST_LIMIT_S must be a number of seconds, got "
+                            f"{os.environ['SAFEWBC_FAST_LIMIT_S']!r}") from None
 _SETUP_S = pytest.StashKey[float]()
 
 
