@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 import json
 import sys
 
@@ -50,7 +51,8 @@ def _compile_cache(args) -> None:
 
 
 def _engine_args(p) -> None:
-    """--engine and --workers of ``sweep`` and ``tune-poles``."""
+    """--engine, --workers, --no-cache and --quiet of ``sweep``, ``tune`` and
+    ``tune-poles``."""
     p.add_argument("--engine", choices=("auto", "mjx", "mujoco"), default="auto",
                    help="mjx: batched MJX rollouts (JAX QP solver); mujoco: one deployment "
                    "loop (C MuJoCo + PIQP) per CPU; auto: mjx on an accelerator, on a CPU "
@@ -58,6 +60,10 @@ def _engine_args(p) -> None:
     p.add_argument("--workers", type=_int_at_least(1), default=None,
                    help="--engine mujoco: worker processes, one pinned to each CPU "
                    "(default: one per CPU this process may use)")
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not use the on-disk XLA compilation cache")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
+                   "stderr (errors and the final summary still print)")
 
 
 def _check_engine(args) -> None:
@@ -113,15 +119,30 @@ def _cmd_report(args) -> int:
     return 0
 
 
-def _cmd_tune_poles(args) -> int:
+def _cmd_tune(args) -> int:
+    from safewbc_jax.sweeps import tuning
     from safewbc_jax.sweeps.spec import load_spec
-    from safewbc_jax.sweeps.tune import tune_poles
 
-    spec = load_spec(args.spec)
+    spec = load_spec(args.spec)          # the spec and its [tune] table, before any compile
+    method = "grid" if args.command == "tune-poles" else args.method
+    params = tuning.poles_preset(spec) if args.command == "tune-poles" else None
+    cfg = tuning.config(spec, method=method, budget=args.budget, validate=args.validate,
+                        params=params)
     _check_engine(args)
     _compile_cache(args)
-    r = tune_poles(spec, args.out, work=args.work, batch=args.batch, seed=args.seed,
-                   quiet=args.quiet, engine=args.engine, workers=args.workers)
+    out = Path(args.out)
+    if out.suffix != ".toml":
+        raise ValueError(f"--out {out}: expected a .toml file (a params file for safewbc run)")
+    work = args.work or out.with_name(out.stem + ("_rounds" if args.command == "tune-poles"
+                                                  else "_tune"))
+    try:
+        r = tuning.tune(spec, out, cfg=cfg, work=work, batch=args.batch, seed=args.seed,
+                        quiet=args.quiet, engine=args.engine, workers=args.workers,
+                        title=args.command)
+    except KeyboardInterrupt:
+        print(f"safewbc: interrupted; the finished generations are kept in {work}, rerun "
+              "the same command to resume", file=sys.stderr)
+        return 130
     print(r.summary())
     return 0
 
@@ -245,33 +266,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() "
                    "and take --hosts / --host-index from jax.process_count() / process_index()")
     _engine_args(p)
-    p.add_argument("--no-cache", action="store_true",
-                   help="do not use the on-disk XLA compilation cache")
-    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
-                   "stderr (errors and the final summary still print)")
     p.set_defaults(func=_cmd_sweep)
 
-    p = sub.add_parser("report", help="figures and summary.md of a sweep directory")
-    p.add_argument("dir", help="sweep directory written by safewbc sweep")
+    p = sub.add_parser("report", help="figures and summary.md of a sweep directory or of a "
+                       "tuning run's folder")
+    p.add_argument("dir", help="sweep directory written by safewbc sweep, or the --work "
+                   "folder of safewbc tune / tune-poles")
     p.add_argument("--dest", default=None, help="where to write (default: DIR)")
     p.set_defaults(func=_cmd_report)
 
-    p = sub.add_parser("tune-poles", help="search Theorem-1 admissible A-ECBF poles with "
-                       "successive refined sweeps; writes a params TOML for safewbc run --params")
-    p.add_argument("spec", help="sweep spec TOML: its scenario, pushes, perturbations and "
-                   "[tune] table")
-    p.add_argument("--out", required=True, help="params TOML to write")
-    p.add_argument("--work", default=None, help="folder of the rounds' sweep tables "
-                   "(default: OUT without .toml + '_rounds'); a rerun resumes there")
-    p.add_argument("--batch", type=_int_at_least(1), default=None, help="rollouts per chunk")
-    p.add_argument("--seed", type=_int_at_least(0), default=None,
-                   help="seed of the perturbations")
-    _engine_args(p)
-    p.add_argument("--no-cache", action="store_true",
-                   help="do not use the on-disk XLA compilation cache")
-    p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
-                   "stderr (errors and the final summary still print)")
-    p.set_defaults(func=_cmd_tune_poles)
+    for name, text in (
+            ("tune", "tune controller parameters (the spec's [tune] table: poles, gains, "
+             "weights) for the least objective with no fall or violation over the spec's "
+             "pushes and perturbations (CMA-ES or grid refinement), then validate on "
+             "held-out draws; writes a params TOML for safewbc run --params"),
+            ("tune-poles", "the poles of tune.barrier by successive grid refinement (a "
+             "preset of safewbc tune); writes a params TOML for safewbc run --params")):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("spec", help="sweep spec TOML: its scenario, pushes, perturbations "
+                       "and [tune] table")
+        p.add_argument("--out", required=True, help="params TOML to write")
+        p.add_argument("--work", default=None, help="folder of the generations' sweep "
+                       "tables and tuning.json (default: OUT without .toml + "
+                       f"'{'_tune' if name == 'tune' else '_rounds'}'); a rerun resumes there")
+        if name == "tune":
+            p.add_argument("--method", choices=("cmaes", "grid"), default=None,
+                           help="the search (default: tune.method, else cmaes)")
+        p.add_argument("--budget", type=_int_at_least(1), default=None,
+                       help="rollouts the search may use (default: tune.budget, else 10 "
+                       "CMA-ES generations or the grid's rounds)")
+        p.add_argument("--validate", type=_int_at_least(0), default=None,
+                       help="held-out rollouts of the result (default: tune.validate, else "
+                       "64; 0: none)")
+        p.add_argument("--batch", type=_int_at_least(1), default=None,
+                       help="rollouts per chunk")
+        p.add_argument("--seed", type=_int_at_least(0), default=None,
+                       help="seed of the search and of its perturbations (validation: "
+                       "seed + 1)")
+        _engine_args(p)
+        p.set_defaults(func=_cmd_tune)
     return ap
 
 

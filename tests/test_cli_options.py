@@ -73,6 +73,14 @@ def test_run_options_refused(argv, msg, capsys, tmp_path):
     (["sweep", SPEC, "--out", "o", "--engine", "mjx", "--workers", "1"],
      "only the mujoco engine has workers"),
     (["tune-poles", SPEC, "--out", "o.toml", "--workers", "999"], "this process may run on"),
+    (["tune", SPEC, "--out", "o.toml", "--method", "random"], "invalid choice: 'random'"),
+    (["tune", SPEC, "--out", "o.toml", "--budget", "0"], "expected an integer >= 1"),
+    (["tune", SPEC, "--out", "o.toml", "--validate", "-1"], "expected an integer >= 0"),
+    (["tune", SPEC, "--out", "o.toml", "--budget", "5"],
+     "a budget of 5 rollouts is less than one generation"),
+    (["tune", SPEC, "--out", "o.params", "--budget", "500"], "expected a .toml file"),
+    (["tune", SPEC, "--out", "o.toml", "--engine", "mjx", "--workers", "1"],
+     "only the mujoco engine has workers"),
 ])
 def test_sweep_and_tune_options_refused(argv, msg, capsys):
     rc, err = _run(argv, capsys)

@@ -83,7 +83,7 @@ def test_safewbc_commands_parse(capsys):
         except SystemExit:
             pytest.fail(f"README: `{text}` does not parse:\n{capsys.readouterr().err}")
         inputs = []
-        if args.command in ("sweep", "tune-poles"):
+        if args.command in ("sweep", "tune", "tune-poles"):
             inputs.append(args.spec)
         if args.command == "report":
             inputs.append(args.dir)

@@ -165,7 +165,7 @@ def test_same_seed_same_table_on_one_and_two_devices(sweeps):
 @pytest.mark.slow
 @pytest.mark.timeout(2400)
 def test_notebook_runs_in_small_configuration(tmp_path):
-    """notebooks/tune_barrier_poles.ipynb end to end (sweep, report, tune, deployment run)
+    """notebooks/tune_barrier_poles.ipynb end to end (sweep, report, `tune`, deployment run)
     in its small configuration, in a fresh kernel."""
     import json
 
@@ -193,14 +193,17 @@ def test_notebook_runs_in_small_configuration(tmp_path):
     cols = table_mod.read_columns(tmp_path / "sweep")
     assert len(cols["rollout"]) == 2 and not cols["fell"].any()
     assert (tmp_path / "sweep" / "summary.md").is_file() and images >= 4
-    tuning = json.loads((tmp_path / "tune_rounds" / "tuning.json").read_text())
-    best = tuning["best"]["poles"]
-    assert len(best) == 2 and all(2.0 <= p <= 40.0 for p in best)
+    tuning = json.loads((tmp_path / "tune" / "tuning.json").read_text())
+    best = tuning["best"]["params"]
+    assert len(tuning["generations"]) == 2 and tuning["used"] == 4
+    assert 2.0 <= best["poles.left_fist.p1"] <= 40.0 and 0.5 <= best["gain_scale.arms"] <= 2.0
+    assert tuning["validation"]["n"] == 2
     from safewbc_jax.params import load_overrides
 
-    assert load_overrides(tmp_path / "tuned_poles.toml")["poles"]["left_fist"] == pytest.approx(best)
+    tuned = load_overrides(tmp_path / "tuned_poles.toml")
+    assert tuned["poles"]["left_fist"][0] == pytest.approx(best["poles.left_fist.p1"])
     m = json.loads((tmp_path / "deploy" / "metrics.json").read_text())
-    assert m["poles"]["left_fist"] == pytest.approx(best)
+    assert m["poles"]["left_fist"][0] == pytest.approx(best["poles.left_fist.p1"])
     assert not m["fell"] and m["qp_failed"] == 0
     assert m["barrier_min"]["left_fist"] > 0.0
 

@@ -344,19 +344,25 @@ def test_theorem1_bounds_used_by_tuning():
     assert first_pole_bound(np.array([[0.05, 0.0]])) == 0.0      # at rest: any poles
 
 
-def test_tune_spec_checks(tmp_path):
-    from safewbc_jax.sweeps.tune import _distribution, _initial_box
+def test_tune_poles_preset_box_and_distribution(tmp_path):
+    """tune-poles' parameters: the barrier's poles over [pole_min, pole_max], narrowed by
+    the spec's pole axes; the distribution is the push axes, and any other axis is refused."""
+    from safewbc_jax.sweeps.tuning import distribution, poles_preset
 
     s = spec_from(tmp_path, GOOD + "\n[tune]\npole_min = 1.5\npole_max = 50.0\n")
-    lo, hi = _initial_box(s, "left_fist", 2)
-    np.testing.assert_allclose(np.exp(lo), [2.0, 1.5])      # p1 from the grid, p2 from tune
-    np.testing.assert_allclose(np.exp(hi), [8.0, 50.0])
-    axes, rows = _distribution(s, "left_fist")
+    ps = poles_preset(s)
+    assert [p.name for p in ps] == ["poles.left_fist.p1", "poles.left_fist.p2"]
+    np.testing.assert_allclose([p.lo for p in ps], [2.0, 1.5])   # p1 from the grid, p2 from tune
+    np.testing.assert_allclose([p.hi for p in ps], [8.0, 50.0])
+    assert {p.scale for p in ps} == {"log"}
+    axes, rows = distribution(s, ps)
     assert [a.name for a in axes] == ["push.magnitude"] and rows[:, 0].tolist() == [0.0, 50.0]
+    eq = poles_preset(spec_from(tmp_path, GOOD + "\n[tune]\nequal_poles = true\n", "e.toml"))
+    assert [(p.name, p.lo, p.hi) for p in eq] == [("poles.left_fist", 2.0, 8.0)]
     bad = spec_from(tmp_path, GOOD.replace('"push.magnitude" = [0.0, 50.0]', "mu = [0.5, 0.9]"),
                     "g.toml")
     with pytest.raises(SpecError, match=r"grid axes \['mu'\] are neither"):
-        _distribution(bad, "left_fist")
+        distribution(bad, poles_preset(bad))
 
 
 def test_precision_key(tmp_path):

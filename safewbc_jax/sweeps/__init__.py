@@ -8,11 +8,16 @@
                  ``safewbc_jax.batch.rollout.run_batch``;
 * :mod:`.stats`  Wilson score intervals for violation rates;
 * :mod:`.report` ``safewbc report``: figures and ``summary.md``;
-* :mod:`.tune`   ``safewbc tune-poles``: successive refined sweeps over Theorem-1
-                 admissible barrier poles, written as a params TOML.
+* :mod:`.tuning` ``safewbc tune``: poles, gains and weights with no fall or violation over
+                 a push and perturbation distribution at the least objective, by
+                 generations of sweeps, validated on held-out draws;
+* :mod:`.search` the tuner's searches: CMA-ES and successive grid refinement;
+* :mod:`.tune`   ``safewbc tune-poles``: the grid-refinement preset of ``tune`` over one
+                 barrier's poles;
+* :mod:`.tune_report` ``safewbc report`` of a tuning run.
 
-Nothing here imports JAX at module import time except :mod:`.run` and :mod:`.tune`
-(through their entry points), so validating a spec is instant.
+Nothing here imports JAX at module import time except :mod:`.run` and the tuner (through
+their entry points), so validating a spec is instant.
 """
 
 from safewbc_jax.sweeps.spec import SpecError, SweepSpec, load_spec  # noqa: F401

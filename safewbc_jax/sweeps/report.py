@@ -347,7 +347,11 @@ def summary(man, cols, oc, figures, top: int = 5) -> str:
 
 def make_report(out, dest=None) -> dict:
     """Write the figures and summary.md of sweep directory ``out`` into ``dest`` (default
-    ``out``). Returns {"figures": [...], "summary": path, "rollouts": n}."""
+    ``out``); of a tuning folder (``tuning.json``), ``tune_report.make_tune_report``'s. Returns {"figures": [...], "summary": path, "rollouts": n}."""
+    from safewbc_jax.sweeps import tune_report
+
+    if tune_report.is_tuning(out):
+        return tune_report.make_tune_report(out, dest)
     out = Path(out)
     dest = Path(dest) if dest else out
     dest.mkdir(parents=True, exist_ok=True)

@@ -34,10 +34,22 @@ A spec is a TOML file::
     base_angular = 0.0       # std of each base angular velocity component (rad/s)
     joints = 0.0             # std of each hinge joint rate (rad/s)
 
-    [tune]                   # used by ``safewbc tune-poles`` only
-    rounds = 3  points = 4  shrink = 0.5  pole_min = 0.5  pole_max = 200.0
-    objective = ["tracking_rms.arms"]
-    equal_poles = false      # true: search p1 = ... = pr only (one dimension)
+    [tune]                   # used by ``safewbc tune`` and ``tune-poles`` only
+    method = "cmaes"         # or "grid" (successive grid refinement; tune-poles' search)
+    budget = 240             # rollouts of the search (default: 10 CMA-ES generations,
+                             #   or the grid's rounds)
+    validate = 64            # held-out rollouts of the result (0: none)
+    population = 6           # CMA-ES candidates a generation (default 4 + floor(3 ln d))
+    sigma = 0.3              # CMA-ES's first step, as a fraction of each range
+    objective = ["tracking_rms.arms"]   # or { "tracking_rms.arms" = 1.0, "zmp_margin_min" = -1.0 }
+    rounds = 3  points = 4  shrink = 0.5    # the grid search
+    barrier = "left_fist"  pole_min = 0.5  pole_max = 200.0  equal_poles = false
+                             # without [tune.params]: the poles of this barrier in this box
+                             #   (equal_poles: one parameter p1 = ... = pr)
+
+    [tune.params]            # what to tune: any controller axis name of [grid], with
+    "poles.left_fist.p1" = { bounds = [2.0, 128.0] }               # log scale when > 0
+    "gain_scale.arms" = { bounds = [0.5, 2.0], scale = "linear", start = 1.0 }
 
 Axis names in ``[grid]``:
 
@@ -79,13 +91,18 @@ PUSH_KEYS = ("magnitude", "direction", "at", "duration")
 PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": PUSH_AT, "duration": PUSH_FOR}
 PERTURB_KEYS = ("base_linear", "base_angular", "joints")
 TUNE_KEYS = {"rounds": int, "points": int, "shrink": float, "pole_min": float,
-             "pole_max": float, "objective": list, "barrier": str, "equal_poles": bool}
+             "pole_max": float, "objective": list, "barrier": str, "equal_poles": bool,
+             "method": str, "params": dict, "population": int, "sigma": float, "budget": int,
+             "validate": int}
 TUNE_DEFAULTS = {"rounds": 3, "points": 4, "shrink": 0.5, "pole_min": 0.5, "pole_max": 200.0,
-                 "equal_poles": False}
+                 "equal_poles": False, "method": "cmaes", "sigma": 0.3, "validate": 64}
+TUNE_METHODS = ("cmaes", "grid")
+PARAM_KEYS = ("bounds", "scale", "start")
 GAIN_TABLES = ("kp", "kd", "weight")
 SCALES = ("kp_scale", "kd_scale", "weight_scale", "gain_scale")
 MAX_ROLLOUTS = 10_000_000
 OBJECTIVE_METRICS = ("torque_ratio_max", "foot_slip_max")   # besides tracking_rms.OUTPUT
+MARGIN_METRICS = ("zmp_margin_min",)    # to maximize: a negative weight in tune.objective
 
 
 class SpecError(ValueError):
@@ -456,45 +473,7 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
                             f"{', '.join(PERTURB_KEYS)}")
         perturb[k] = _number(src, f"perturb.{k}", v, nonneg=True)
 
-    tune_tab = _table(src, data, "tune")
-    tune = dict(TUNE_DEFAULTS)
-    for k, v in tune_tab.items():
-        if k not in TUNE_KEYS:
-            raise SpecError(f"{src}: unknown key tune.{k} = {_fmt(v)}; known: {', '.join(TUNE_KEYS)}")
-        if k == "objective":
-            if isinstance(v, str):
-                v = [v]
-            if not isinstance(v, list) or not v or not all(isinstance(x, str) for x in v):
-                raise SpecError(f"{src}: tune.objective = {_fmt(v)}: expected a non-empty list "
-                                "of metric names such as \"tracking_rms.com\"")
-            allowed = [f"tracking_rms.{o}" for o in outputs] + list(OBJECTIVE_METRICS)
-            for x in v:
-                if x not in allowed:
-                    raise SpecError(f"{src}: tune.objective = {_fmt(v)}: {x!r} is not a "
-                                    f"metric to minimize in this scenario; use {', '.join(allowed)}")
-            tune[k] = list(v)
-        elif k == "barrier":
-            if not isinstance(v, str) or v not in barriers:
-                raise SpecError(f"{src}: tune.barrier = {_fmt(v)}: not an enforced barrier of "
-                                f"{scenario!r}; enforced: {list(barriers) or 'none'}")
-            tune[k] = v
-        elif k == "equal_poles":
-            if not isinstance(v, bool):
-                raise SpecError(f"{src}: tune.equal_poles = {_fmt(v)}: expected true or false")
-            tune[k] = v
-        elif k in ("rounds", "points"):
-            tune[k] = _number(src, f"tune.{k}", v, positive=True, integer=True)
-            if k == "points" and tune[k] < 2:
-                raise SpecError(f"{src}: tune.points = {v!r}: needs at least 2 per pole")
-        else:
-            tune[k] = _number(src, f"tune.{k}", v, positive=True)
-    if not 0 < tune["shrink"] < 1:
-        raise SpecError(f"{src}: tune.shrink = {tune['shrink']!r}: must be between 0 and 1")
-    if tune["pole_min"] >= tune["pole_max"]:
-        raise SpecError(f"{src}: tune.pole_min = {tune['pole_min']!r} must be below "
-                        f"tune.pole_max = {tune['pole_max']!r}")
-    tune.setdefault("objective", [f"tracking_rms.{o}" for o in outputs])
-    tune.setdefault("barrier", target if target in barriers else None)
+    tune = _parse_tune(src, _table(src, data, "tune"), info, axes, target, defaults)
 
     spec = SweepSpec(path=src, scenario=scenario, barrier=barrier_on, duration=duration,
                      settle=settle, control_dt=control_dt, repeats=repeats, seed=seed,
@@ -603,3 +582,165 @@ def perturbations(seed: int, rollouts: np.ndarray, std: np.ndarray,
         rng = np.random.default_rng([int(seed), int(k)])
         out[i] = rng.standard_normal(std.size) * std
     return out
+
+
+# --------------------------------------------------------------------------------------
+# The [tune] table
+# --------------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class TuneParam:
+    """One tuned parameter: the ``axis`` it sets (any controller axis of [grid]), its
+    bounds, its scale ("log" or "linear") and the search's start value (None: the spec's
+    value, clipped into the bounds)."""
+
+    axis: Axis
+    lo: float
+    hi: float
+    scale: str
+    start: float | None = None
+
+    @property
+    def name(self) -> str:
+        return self.axis.name
+
+    def to_value(self, u):
+        """Unit-box coordinate(s) in [0, 1] -> parameter value(s)."""
+        u = np.clip(np.asarray(u, float), 0.0, 1.0)
+        if self.scale == "log":
+            return np.exp(np.log(self.lo) + u * (np.log(self.hi) - np.log(self.lo)))
+        return self.lo + u * (self.hi - self.lo)
+
+    def to_unit(self, v):
+        v = np.clip(np.asarray(v, float), self.lo, self.hi)
+        if self.scale == "log":
+            return (np.log(v) - np.log(self.lo)) / (np.log(self.hi) - np.log(self.lo))
+        return (v - self.lo) / (self.hi - self.lo)
+
+
+def _parse_objective(src, v, outputs) -> dict:
+    """tune.objective: a list of metric names (weights 1) or a table {name = weight}."""
+    allowed = [f"tracking_rms.{o}" for o in outputs] + list(OBJECTIVE_METRICS) + list(MARGIN_METRICS)
+    if isinstance(v, str):
+        v = [v]
+    if isinstance(v, list):
+        if not v or not all(isinstance(x, str) for x in v):
+            raise SpecError(f"{src}: tune.objective = {_fmt(v)}: expected a non-empty list "
+                            "of metric names such as \"tracking_rms.com\", or a table "
+                            "{name = weight}")
+        v = {x: 1.0 for x in v}
+    if not isinstance(v, dict) or not v:
+        raise SpecError(f"{src}: tune.objective = {_fmt(v)}: expected a list of metric names "
+                        "or a table {name = weight}")
+    out = {}
+    for x, w in v.items():
+        if x not in allowed:
+            raise SpecError(f"{src}: tune.objective = {_fmt(v)}: {x!r} is not a "
+                            f"metric to minimize in this scenario; use {', '.join(allowed)}")
+        w = _number(src, f"tune.objective.{_quote(x)}", w)
+        if x in MARGIN_METRICS and w > 0:
+            raise SpecError(f"{src}: tune.objective.{x} = {w!r}: {x} is a margin (larger is "
+                            "better); give it a negative weight to reward it")
+        if w == 0:
+            raise SpecError(f"{src}: tune.objective.{_quote(x)} = 0: a zero weight; leave "
+                            "the metric out")
+        out[x] = w
+    return out
+
+
+def _parse_tune_param(src, key, value, info, axes, defaults) -> TuneParam:
+    where = f"tune.params.{_quote(key)}"
+    if isinstance(value, list):
+        value = {"bounds": value}
+    if not isinstance(value, dict):
+        raise SpecError(f"{src}: {where} = {_fmt(value)}: expected [low, high] or "
+                        "{ bounds = [low, high], scale = \"log\" | \"linear\", start = x }")
+    for k in value:
+        if k not in PARAM_KEYS:
+            raise SpecError(f"{src}: unknown key {where}.{k} = {_fmt(value[k])}; known: "
+                            f"{', '.join(PARAM_KEYS)}")
+    b = value.get("bounds")
+    if not isinstance(b, list) or len(b) != 2:
+        raise SpecError(f"{src}: {where}.bounds = {_fmt(b)}: expected [low, high]")
+    lo = _number(src, f"{where}.bounds[0]", b[0])
+    hi = _number(src, f"{where}.bounds[1]", b[1])
+    if not lo < hi:
+        raise SpecError(f"{src}: {where}.bounds = {_fmt(b)}: low must be below high")
+    if key.split(".")[0] == "push":
+        raise SpecError(f"{src}: {where}: pushes are the distribution a candidate must "
+                        "survive, not a parameter to tune; sweep them in [grid]")
+    if key.split(".")[0] == "threshold":
+        raise SpecError(f"{src}: {where}: a threshold defines the safe set itself; tuning "
+                        "it would move the constraint (fix it in [params])")
+    axis = _parse_axis(src, key, (lo, hi), info)
+    if any(a.name == key for a in axes):
+        raise SpecError(f"{src}: {where} is also a [grid] axis; give it in one place")
+    scale = value.get("scale", "log" if lo > 0 else "linear")
+    if scale not in ("log", "linear"):
+        raise SpecError(f"{src}: {where}.scale = {_fmt(scale)}: expected \"log\" or \"linear\"")
+    if scale == "log" and lo <= 0:
+        raise SpecError(f"{src}: {where}: scale = \"log\" needs bounds > 0, got {_fmt(b)}")
+    start = value.get("start")
+    if start is not None:
+        start = _number(src, f"{where}.start", start)
+        if not lo <= start <= hi:
+            raise SpecError(f"{src}: {where}.start = {start!r}: outside the bounds {_fmt(b)}")
+    return TuneParam(axis, lo, hi, scale, start)
+
+
+def _parse_tune(src, tab, info, axes, target, defaults) -> dict:
+    """The [tune] table of ``safewbc tune`` (and its ``tune-poles`` preset), every key
+    checked here, before anything compiles."""
+    barriers, monitors, outputs, pole_counts = info
+    tune = dict(TUNE_DEFAULTS)
+    for k, v in tab.items():
+        if k not in TUNE_KEYS:
+            raise SpecError(f"{src}: unknown key tune.{k} = {_fmt(v)}; known: {', '.join(TUNE_KEYS)}")
+        if k == "objective":
+            tune["weights"] = _parse_objective(src, v, outputs)
+            tune[k] = list(tune["weights"])
+        elif k == "barrier":
+            if not isinstance(v, str) or v not in barriers:
+                raise SpecError(f"{src}: tune.barrier = {_fmt(v)}: not an enforced barrier of "
+                                f"this scenario; enforced: {list(barriers) or 'none'}")
+            tune[k] = v
+        elif k == "equal_poles":
+            if not isinstance(v, bool):
+                raise SpecError(f"{src}: tune.equal_poles = {_fmt(v)}: expected true or false")
+            tune[k] = v
+        elif k == "method":
+            if v not in TUNE_METHODS:
+                raise SpecError(f"{src}: tune.method = {_fmt(v)}: expected one of "
+                                f"{', '.join(TUNE_METHODS)}")
+            tune[k] = v
+        elif k == "params":
+            if not isinstance(v, dict) or not v:
+                raise SpecError(f"{src}: tune.params = {_fmt(v)}: expected a table of "
+                                "parameters to tune, e.g. \"poles.left_fist.p1\" = "
+                                "{ bounds = [2.0, 200.0] }")
+            tune[k] = tuple(_parse_tune_param(src, kk, vv, info, axes, defaults)
+                            for kk, vv in v.items())
+        elif k in ("rounds", "points", "population", "budget", "validate"):
+            tune[k] = _number(src, f"tune.{k}", v, positive=k != "validate", nonneg=True,
+                              integer=True)
+            if k == "points" and tune[k] < 2:
+                raise SpecError(f"{src}: tune.points = {v!r}: needs at least 2 per pole")
+            if k == "population" and tune[k] < 2:
+                raise SpecError(f"{src}: tune.population = {v!r}: CMA-ES needs at least 2 "
+                                "candidates a generation")
+        else:
+            tune[k] = _number(src, f"tune.{k}", v, positive=True)
+    if not 0 < tune["shrink"] < 1:
+        raise SpecError(f"{src}: tune.shrink = {tune['shrink']!r}: must be between 0 and 1")
+    if not 0 < tune["sigma"] <= 1:
+        raise SpecError(f"{src}: tune.sigma = {tune['sigma']!r}: the initial step as a "
+                        "fraction of each parameter's range (log range on a log scale) must be "
+                        "in (0, 1]")
+    if tune["pole_min"] >= tune["pole_max"]:
+        raise SpecError(f"{src}: tune.pole_min = {tune['pole_min']!r} must be below "
+                        f"tune.pole_max = {tune['pole_max']!r}")
+    if "weights" not in tune:
+        tune["weights"] = {f"tracking_rms.{o}": 1.0 for o in outputs}
+        tune["objective"] = list(tune["weights"])
+    tune.setdefault("barrier", target if target in barriers else None)
+    return tune
