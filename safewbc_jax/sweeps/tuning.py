@@ -297,17 +297,11 @@ class TuneResult:
             lines.append(f"  validation on {v['n']} held-out rollouts: {v['unsafe']} unsafe "
                          f"(rate {v['rate']:.3f}, Wilson 95% CI [{v['ci'][0]:.3f}, "
                          f"{v['ci'][1]:.3f}]), mean objective {v['objective']:.4g}, worst "
-                         "margin " + ", ".join(f"{k} {h:.4g}" for k, h in v["hmin"].items()))
+                         "min h " + (", ".join(f"{k} {h:.4g}" for k, h in v["hmin"].items())
+                                     or "(no barrier)"))
         lines.append(f"wrote {self.out} (safewbc run {self.scenario}{self.run_args} --params "
                      f"{self.out}); generations in {self.work}")
         return "\n".join(lines)
-
-
-def _sub_spec(spec, cfg_params, dist_axes, cand_vals, dist_rows, n_draws):
-    rows = [tuple(c) + tuple(d) for c in cand_vals for d in dist_rows]
-    return dataclasses.replace(
-        spec.with_rows(tuple(p.axis for p in cfg_params) + tuple(dist_axes), rows),
-        noise_period=n_draws)
 
 
 def _make_search(cfg: TuneConfig, params, base, seed):
@@ -320,17 +314,49 @@ def _make_search(cfg: TuneConfig, params, base, seed):
     return search.Cmaes(x0, cfg.sigma, cfg.population, seed)
 
 
+@dataclasses.dataclass
+class _Run:
+    """What the generations and the validation of one tuning run share."""
+
+    spec: SweepSpec
+    cfg: TuneConfig
+    params: tuple            # TuneParam, after Theorem 1's repair
+    base: object             # the spec's ControllerParams
+    etas: dict               # barrier -> (draws, r) eta(x0) at the start states
+    dist_axes: tuple
+    dist_rows: np.ndarray
+    n_draws: int             # rollouts a candidate gets: push settings x repeats
+    work: Path
+    seed: int
+    sweep_kw: dict           # run_sweep's batch, executor, progress, quiet, engine, workers
+    title: str
+    say: object
+
+    def rows(self, vals: np.ndarray, dist_index) -> list:
+        return [tuple(v) + tuple(self.dist_rows[d]) for v in vals for d in dist_index]
+
+    def roll(self, rows, folder: Path, seed: int, desc: str, **spec_changes) -> dict:
+        """Roll ``rows`` (tuned values + push values) out as a sweep into ``folder``;
+        its columns."""
+        from safewbc_jax.sweeps.run import run_sweep
+        from safewbc_jax.sweeps.table import read_columns
+
+        axes = tuple(p.axis for p in self.params) + tuple(self.dist_axes)
+        sub = dataclasses.replace(self.spec.with_rows(axes, rows), **spec_changes)
+        run_sweep(sub, folder, seed=seed, check_poles=True, desc=desc, **self.sweep_kw)
+        return read_columns(folder)
+
+
 def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batch=None,
          seed=None, executor=None, progress=None, quiet=False, engine="mjx", workers=None,
          title="tune") -> TuneResult:
     """Run (or resume) a tuning run of ``spec`` and write the params TOML ``out``.
     ``cfg``: :func:`config` of the spec when None. ``work``: the generations' folder
     (default OUT without .toml + "_tune"). ``batch``, ``executor``, ``engine``, ``workers``,
-    ``progress``, ``quiet``: each generation's sweep's (``run_sweep``); a tqdm bar per
-    generation titled with the best objective so far."""
-    from safewbc_jax.params import apply_overrides, load_overrides, to_toml
-    from safewbc_jax.sweeps.run import run_sweep
-    from safewbc_jax.sweeps.table import read_columns
+    ``progress``, ``quiet``: each generation's sweep's (``run_sweep``), with a tqdm bar per
+    generation titled with the best objective so far. The mujoco engine's workers start
+    once and serve every generation and the validation."""
+    from safewbc_jax.sweeps import pool as pool_mod
 
     out = Path(out)
     if out.suffix != ".toml":
@@ -344,25 +370,47 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
     n_draws = len(dist_rows) * spec.repeats
     base = spec_mod.base_params(spec)
     params, etas = _theorem1(spec, cfg, base, seed, n_draws, say)
-    search = _make_search(cfg, params, base, seed)
-    say(f"[{title}] {len(params)} parameters ({', '.join(p.name for p in params)}) by "
-        f"{cfg.method}: {search.population} candidates a generation x {n_draws} rollouts, "
-        f"budget {cfg.budget} rollouts")
     head = {"method": cfg.method, "seed": seed, "budget": cfg.budget,
             "params": [{"name": p.name, "lo": p.lo, "hi": p.hi, "scale": p.scale}
                        for p in params],
             "weights": cfg.weights, "barriers": list(spec.barriers),
             "violation_tol": spec.violation_tol, "draws": n_draws, "scenario": spec.scenario,
             "spec_path": spec.path, "fingerprint": spec.fingerprint()}
-    work.mkdir(parents=True, exist_ok=True)
-    old = work / "tuning.json"
-    if old.exists():
-        prev = json.loads(old.read_text())
-        keys = [k for k in head if k != "budget"]      # a larger budget extends a run
+    state = work / "tuning.json"
+    if state.exists():
+        prev = json.loads(state.read_text())
         now = json.loads(json.dumps(head, default=float))
-        if any(prev.get(k) != now[k] for k in keys):
+        if any(prev.get(k) != now[k] for k in head if k != "budget"):   # a larger budget
             raise SpecError(f"{work}: holds a tuning run of another spec, method or seed; "
                             "give another --work (or remove it)")
+    work.mkdir(parents=True, exist_ok=True)
+    own_pool = None
+    if executor is None and pool_mod.resolve_engine(engine) == "mujoco":
+        engine = "mujoco"       # one pool for every generation: its workers compile once
+        executor = own_pool = pool_mod.PoolExecutor(spec, workers)
+    run = _Run(spec, cfg, params, base, etas, dist_axes, dist_rows, n_draws, work, seed,
+               dict(batch=batch, executor=executor, progress=progress, quiet=quiet,
+                    engine=engine, workers=workers), title, say)
+    try:
+        gens, best, used, stop = _search(run, _make_search(cfg, params, base, seed), state,
+                                         head)
+        validation = _validate(run, best) if cfg.validate else None
+    finally:
+        if own_pool is not None:
+            own_pool.close()
+    run_args = _write_params(run, out, best, gens, used, stop, validation)
+    _write(state, head, gens, best, used, validation, stop)
+    return TuneResult(best, validation, gens, out, work, spec.scenario, cfg.method, used,
+                      stop, run_args)
+
+
+def _search(run: _Run, search, state: Path, head: dict):
+    """The generations: ask, refuse, roll out, rank, tell; ``tuning.json`` after each.
+    Returns (generations, best candidate, rollouts used, why it stopped)."""
+    spec, cfg, params, tol = run.spec, run.cfg, run.params, run.spec.violation_tol
+    run.say(f"[{run.title}] {len(params)} parameters ({', '.join(p.name for p in params)}) "
+            f"by {cfg.method}: {search.population} candidates a generation x {run.n_draws} "
+            f"rollouts, budget {cfg.budget} rollouts")
     history, gens = [], []
     used, stop, g = 0, "", 0
     best = None
@@ -374,58 +422,74 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
             stop = "converged" if cfg.method == "cmaes" else "rounds done"
             break
         x = search.ask()
-        g += 1
         vals = np.stack([p.to_value(x[:, j]) for j, p in enumerate(params)], axis=1)
-        cands = [Candidate({p.name: float(v) for p, v in zip(params, row)}, generation=g)
+        cands = [Candidate({p.name: float(v) for p, v in zip(params, row)}, generation=g + 1)
                  for row in vals]
-        why = _refusal(vals, params, base, etas)
+        why = _refusal(vals, params, run.base, run.etas)
         for c, w in zip(cands, why):
             c.refused = w
         live = [i for i, w in enumerate(why) if not w]
-        cost = len(live) * n_draws
+        cost = len(live) * run.n_draws
         if used + cost > cfg.budget:
-            stop = f"budget: generation {g} would need {cost} more rollouts"
-            g -= 1
+            stop = f"budget: generation {g + 1} would need {cost} more rollouts"
             break
+        g += 1
         if live:
-            sub = _sub_spec(spec, params, dist_axes, vals[live], dist_rows, n_draws)
-            gdir = work / f"gen-{g:03d}"
             bo = f"{best.objective:.4g}" if best is not None and best.safe else "none safe yet"
-            run_sweep(sub, gdir, batch=batch, seed=seed, executor=executor, progress=progress,
-                      check_poles=True, quiet=quiet, engine=engine, workers=workers,
-                      desc=f"[{title}] gen {g}, best {bo}:")
-            _evaluate(spec, cfg.weights, read_columns(gdir), len(dist_rows),
-                      [cands[i] for i in live])
+            cols = run.roll(run.rows(vals[live], range(len(run.dist_rows))),
+                            run.work / f"gen-{g:03d}", run.seed,
+                            f"[{run.title}] gen {g}, best {bo}:", noise_period=run.n_draws)
+            _evaluate(spec, cfg.weights, cols, len(run.dist_rows), [cands[i] for i in live])
             used += cost
-        values = [rank_value(c, spec.violation_tol) for c in cands]
+        values = [rank_value(c, tol) for c in cands]
         search.tell(x, values)
         history += cands
-        best = min(history, key=lambda c: rank_value(c, spec.violation_tol))
+        best = min(history, key=lambda c: rank_value(c, tol))
         n_unsafe = sum(c.unsafe for c in cands)
         gens.append({"generation": g, "rollouts": cost, "unsafe": n_unsafe,
                      "candidates": [dataclasses.asdict(c) for c in cands],
                      "values": values, "best": dataclasses.asdict(best)})
-        _write(old, head, gens, best, used, None, "running")
-        say(f"[{title}] generation {g}: {sum(c.safe for c in cands)}/{len(cands)} candidates "
-            f"safe, {n_unsafe}/{cost} rollouts unsafe; best so far "
-            + ", ".join(f"{k} = {v:.4g}" for k, v in best.params.items())
-            + (f" (objective {best.objective:.4g})" if best.safe else
-               f" ({best.unsafe}/{best.n} unsafe)"))
+        _write(state, head, gens, best, used, None, "running")
+        run.say(f"[{run.title}] generation {g}: {sum(c.safe for c in cands)}/{len(cands)} "
+                f"candidates safe, {n_unsafe}/{cost} rollouts unsafe; best so far "
+                + ", ".join(f"{k} = {v:.4g}" for k, v in best.params.items())
+                + (f" (objective {best.objective:.4g})" if best.safe else
+                   f" ({best.unsafe}/{best.n} unsafe)"))
     if best is None:
         raise SpecError(f"{spec.path}: the budget ran out before the first generation")
+    return gens, best, used, stop
 
-    validation = None
-    if cfg.validate:
-        validation = _validate(spec, cfg, params, dist_axes, dist_rows, best, work, batch,
-                               seed, executor, progress, quiet, engine, workers, title)
-    tuned = spec_mod.params_batch(base, tuple(p.axis for p in params),
-                                  np.array([[best.params[p.name] for p in params]]))
-    tuned = type(tuned)(**{f.name: ({k: v[0] for k, v in getattr(tuned, f.name).items()}
-                                     if isinstance(getattr(tuned, f.name), dict)
-                                     else getattr(tuned, f.name)[0])
-                           for f in dataclasses.fields(tuned)})
+
+def _validate(run: _Run, best: Candidate) -> dict:
+    """The best candidate on ``validate`` held-out rollouts (see the module text)."""
+    vseed = run.seed + VALIDATE_SEED_OFFSET
+    n = run.cfg.validate
+    cand = np.array([[best.params[p.name] for p in run.params]])
+    rows = run.rows(cand, [k % len(run.dist_rows) for k in range(n)])
+    cols = run.roll(rows, run.work / "validate", vseed, f"[{run.title}] validation:",
+                    repeats=1, noise_period=None)
+    c = Candidate(dict(best.params))
+    _evaluate(run.spec, run.cfg.weights, cols, n, [c])
+    lo, hi = wilson_interval(c.unsafe, c.n)
+    return {"n": c.n, "seed": vseed, "unsafe": c.unsafe, "violations": c.violations,
+            "falls": c.falls, "lost": c.lost, "rate": c.unsafe / max(c.n, 1), "ci": [lo, hi],
+            "objective": c.objective, "hmin": c.hmin}
+
+
+def _write_params(run: _Run, out: Path, best, gens, used, stop, validation) -> str:
+    """The params TOML: every parameter, the tuned ones set, and a header with the search's
+    and the validation's figures. Returns the extra ``safewbc run`` arguments."""
+    from safewbc_jax.params import apply_overrides, load_overrides, to_toml
+
+    spec, cfg = run.spec, run.cfg
+    one = spec_mod.params_batch(run.base, tuple(p.axis for p in run.params),
+                                np.array([[best.params[p.name] for p in run.params]]))
+    unbatch = lambda v: {k: x[0] for k, x in v.items()} if isinstance(v, dict) else v[0]  # noqa: E731
+    tuned = type(one)(**{f.name: unbatch(getattr(one, f.name))
+                         for f in dataclasses.fields(one)})
     run_args = "".join(f" --safe-set {r}" for r in spec.safe_sets)
-    header = [f"# safewbc {title} {spec.path} ({cfg.method}, seed {seed}): "
+    margins = lambda h: ", ".join(f"{k} {v:.6g}" for k, v in h.items()) or "no barrier"  # noqa: E731
+    header = [f"# safewbc {run.title} {spec.path} ({cfg.method}, seed {run.seed}): "
               + ", ".join(f"{k} = {v:.6g}" for k, v in best.params.items()),
               f"# search: {len(gens)} generations, {used} rollouts ({stop}); best over "
               f"{best.n} rollouts: {best.unsafe} unsafe, mean objective "
@@ -436,42 +500,14 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
         header += [f"# validation on {v['n']} held-out rollouts (seed {v['seed']}): "
                    f"{v['unsafe']} unsafe, rate {v['rate']:.4f} (Wilson 95% CI "
                    f"[{v['ci'][0]:.4f}, {v['ci'][1]:.4f}]), mean objective {v['objective']:.6g}",
-                   "#   worst min h: " + ", ".join(f"{k} {h:.6g}" for k, h in v["hmin"].items())]
+                   f"#   worst min h: {margins(v['hmin'])}"]
     else:
         header.append("# not validated on held-out draws (validate = 0)")
     header += [f"# Use: safewbc run {spec.scenario}{run_args} --params {out}", ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(header) + to_toml(tuned))
-    apply_overrides(base, load_overrides(out), str(out))     # reads back as `run` will
-    _write(old, head, gens, best, used, validation, stop)
-    return TuneResult(best, validation, gens, out, work, spec.scenario, cfg.method, used,
-                      stop, run_args)
-
-
-def _validate(spec, cfg, params, dist_axes, dist_rows, best, work, batch, seed, executor,
-              progress, quiet, engine, workers, title) -> dict:
-    """The best candidate on ``cfg.validate`` held-out rollouts (see the module text)."""
-    from safewbc_jax.sweeps.run import run_sweep
-    from safewbc_jax.sweeps.table import read_columns
-
-    vseed = seed + VALIDATE_SEED_OFFSET
-    n = cfg.validate
-    cand = np.array([best.params[p.name] for p in params])
-    rows = [tuple(cand) + tuple(dist_rows[k % len(dist_rows)]) for k in range(n)]
-    sub = dataclasses.replace(
-        spec.with_rows(tuple(p.axis for p in params) + tuple(dist_axes), rows), repeats=1,
-        noise_period=None)
-    vdir = work / "validate"
-    run_sweep(sub, vdir, batch=batch, seed=vseed, executor=executor, progress=progress,
-              check_poles=True, quiet=quiet, engine=engine, workers=workers,
-              desc=f"[{title}] validation:")
-    c = Candidate(dict(best.params))
-    cols = read_columns(vdir)
-    _evaluate(spec, cfg.weights, cols, n, [c])
-    lo, hi = wilson_interval(c.unsafe, c.n)
-    return {"n": c.n, "seed": vseed, "unsafe": c.unsafe, "violations": c.violations,
-            "falls": c.falls, "lost": c.lost, "rate": c.unsafe / max(c.n, 1), "ci": [lo, hi],
-            "objective": c.objective, "hmin": c.hmin}
+    apply_overrides(run.base, load_overrides(out), str(out))     # reads back as `run` will
+    return run_args
 
 
 def _write(path: Path, head, gens, best, used, validation, stop) -> None:
