@@ -343,7 +343,12 @@ class _Run:
 
         axes = tuple(p.axis for p in self.params) + tuple(self.dist_axes)
         sub = dataclasses.replace(self.spec.with_rows(axes, rows), **spec_changes)
-        run_sweep(sub, folder, seed=seed, check_poles=True, desc=desc, **self.sweep_kw)
+        kw = dict(self.sweep_kw)
+        if kw["batch"] is None and kw["engine"] == "mujoco":
+            # one chunk: its lockstep groups spread over every worker (a chunk of 16 would
+            # be one group, on one worker); the mjx engine keeps one compiled batch size
+            kw["batch"] = len(rows)
+        run_sweep(sub, folder, seed=seed, check_poles=True, desc=desc, **kw)
         return read_columns(folder)
 
 
