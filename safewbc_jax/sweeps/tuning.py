@@ -347,7 +347,7 @@ class _Run:
         if kw["batch"] is None and kw["engine"] == "mujoco":
             # one chunk: its lockstep groups spread over every worker (a chunk of 16 would
             # be one group, on one worker); the mjx engine keeps one compiled batch size
-            kw["batch"] = len(rows)
+            kw["batch"] = sub.n_rollouts
         run_sweep(sub, folder, seed=seed, check_poles=True, desc=desc, **kw)
         return read_columns(folder)
 
