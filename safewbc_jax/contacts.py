@@ -322,12 +322,6 @@ def _corners(p, r, sole):
     return (p[None] + local @ r.T)[:, :2]
 
 
-def sole_corners(model: RobotModel, q, frame: str, sole=(SOLE_LENGTH, SOLE_WIDTH)):
-    """World (x, y) of the four sole corners p + R [+-L/2, +-W/2, 0] (4 x 2)."""
-    p, r = _site_frames(model, q, (frame,))
-    return _corners(p[0], r[0], sole)
-
-
 def _support_polygon(poses, in_contact, margin, sole):
     c = _contact_flags(in_contact)
     p, r = poses

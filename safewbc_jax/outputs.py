@@ -62,22 +62,6 @@ class CoMPosition(Output):
 
 
 @dataclasses.dataclass(frozen=True)
-class CoMHeight(Output):
-    """z_CoM(q) (dim 1), the ALIP domain's height output."""
-
-    name: str = "com_z"
-    dim = 1
-    labels = ("com_z",)
-
-    def value(self, model, q):
-        return robot.com_position(model, q)[2:3]
-
-    def evaluate(self, model, q, v, cache=None):
-        c = cache if cache is not None else robot.dynamics_and_com(model, q, v)
-        return c["com"][2:3], c["J_com"][2:3], c["Jdot_v_com"][2:3]
-
-
-@dataclasses.dataclass(frozen=True)
 class TorsoOrientation(Output):
     """theta_torso(q): base orientation as Euler ZYX angles [roll, pitch, yaw] (3)."""
 

@@ -20,10 +20,6 @@ def scene_xml() -> Path:
     return models_dir() / "scene.xml"
 
 
-def sim_xml() -> Path:
-    return models_dir() / "digit.xml"
-
-
 def controller_xml() -> Path:
     return models_dir() / "digit_controller.xml"
 

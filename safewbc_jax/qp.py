@@ -69,7 +69,3 @@ def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_
     ub = jnp.concatenate([inf, u_max, jnp.full(nc, jnp.inf, dtype)])
     return QP(P=P, q=q, A=A, b=b, G=G, h=hv, lb=lb, ub=ub, soft=soft, nv=nv, nu=nu, nc=nc)
 
-
-def split(x, qp: QP):
-    """X -> (q_ddot, u, lambda), at the block sizes the QP carries (``QP.split``)."""
-    return qp.split(x)

@@ -223,15 +223,6 @@ def from_mujoco(m, dtype=jnp.float64, spring_suffixes=SPRING_SUFFIXES) -> RobotM
         actuator_dof=tuple(act_dof), nq=int(m.nq), nv=int(m.nv), nu=int(m.nu))
 
 
-def load_robot(path=None, dtype=jnp.float64) -> RobotModel:
-    """The controller model of Digit (``models/digit_controller.xml`` by default)."""
-    import mujoco
-
-    from safewbc_jax import paths
-
-    return from_mujoco(mujoco.MjModel.from_xml_path(str(path or paths.controller_xml())), dtype)
-
-
 # --------------------------------------------------------------------------------------
 # Kinematics
 # --------------------------------------------------------------------------------------
@@ -479,11 +470,6 @@ def dynamics_and_com(model: RobotModel, q, v):
     ``com_position``, ``com_jacobian``, ``com_drift``)."""
     kin = forward_kinematics(model, q)
     return dynamics_from_motion(model, com_jacobians(model, kin), body_motion(model, kin, v))
-
-
-def actuation_matrix(model: RobotModel):
-    """B (nv x nu): joint torques u of the 20 motors to generalized forces."""
-    return model.B
 
 
 # --------------------------------------------------------------------------------------

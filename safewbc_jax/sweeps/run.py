@@ -2,9 +2,10 @@
 
 Rollout k of a sweep is setting k // repeats (row-major over the grid axes) with
 perturbation draw k % repeats; its initial velocity perturbation comes from a generator
-seeded by (seed, k). Chunk c holds rollouts [c B, (c + 1) B); the last chunk is padded to
-B with copies of its last rollout (one compiled shape for the whole sweep) and the padding
-is dropped before writing. Finished chunks are Parquet files (see :mod:`.table`); a rerun
+seeded by (seed, k). Chunk c holds rollouts [c B, (c + 1) B). On the mjx engine a short
+last chunk is padded to B with copies of its last rollout (one compiled shape for the whole
+sweep) and the padding is dropped before writing; the mujoco engine's executor says it
+needs no padding (``pads = False``) and runs the short chunk as it is. Finished chunks are Parquet files (see :mod:`.table`); a rerun
 skips them.
 """
 
@@ -241,7 +242,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
            (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt, batch,
             spec.safe_sets))
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
-        f"in {len(chunks)} chunks of {batch} "
+        f"in {len(chunks)} chunk{'s' if len(chunks) > 1 else ''} of {batch} "
         + (f"on {len(devs)} device{'s' if len(devs) > 1 else ''} ({devs[0].platform})"
            if engine == "mjx" else f"on {workers} MuJoCo worker{'s' if workers > 1 else ''}")
         + ("" if key in _COMPILED else
