@@ -206,7 +206,13 @@ def test_tuner_end_to_end_resume_and_report(tmp_path):
     r = _run(spec, tmp_path / "a" / "t.toml", ex)
     assert r.method == "cmaes" and r.used == 240 and r.stop.startswith("budget")
     assert len(r.generations) == 10           # 240 / (6 x 4)
-    assert ex.calls == 10 * 3 + 2             # 24 rollouts in chunks of 8, then 16 held out
+    # the baseline's 4 rollouts (one chunk), 10 generations of 24 in chunks of 8, 16 held out
+    assert ex.calls == 1 + 10 * 3 + 2
+    # the baseline: both scales at 1, on the search's draws (not counted in the budget):
+    # ln(1/2)^2 + ln(1/0.5)^2 + 0.05, plus at most 0.01 |dv| (|dv| ~ 0.05 sqrt(30) = 0.27)
+    z = r.baseline
+    assert z.params == {"gain_scale.arms": 1.0, "weight_scale.com": 1.0} and z.unsafe == 0
+    assert z.objective == pytest.approx(2 * np.log(2) ** 2 + 0.05, abs=0.01)
     b = r.best
     assert b.safe and b.n == 4
     # the constrained optimum is the bowl's bottom (2, 0.5) shifted by 0.05 g (torque term):
@@ -226,6 +232,7 @@ def test_tuner_end_to_end_resume_and_report(tmp_path):
     # the params file: the tuned scales applied to the defaults, with the validation header
     text = (tmp_path / "a" / "t.toml").read_text()
     assert "# validation on 16 held-out rollouts (seed 1): 0 unsafe" in text
+    assert f"0 of 4 unsafe, mean objective {z.objective:.6g}" in text
     ov = load_overrides(tmp_path / "a" / "t.toml")
     base = spec_mod.base_params(spec)
     np.testing.assert_allclose(np.asarray(ov["kp"]["arms"]),
@@ -234,14 +241,14 @@ def test_tuner_end_to_end_resume_and_report(tmp_path):
                                np.asarray(base.kd["arms"]) * np.sqrt(b.params["gain_scale.arms"]))
 
     # interrupted in generation 4 (its first chunk), then rerun
-    ex2 = Analytic(spec, fail_at_call=3 * 3 + 1)
+    ex2 = Analytic(spec, fail_at_call=1 + 3 * 3 + 1)
     with pytest.raises(KeyboardInterrupt):
         _run(spec, tmp_path / "b" / "t.toml", ex2)
     done = json.loads((tmp_path / "b" / "t_tune" / "tuning.json").read_text())
     assert [g["generation"] for g in done["generations"]] == [1, 2, 3]
     ex3 = Analytic(spec)
     r2 = _run(spec, tmp_path / "b" / "t.toml", ex3)
-    assert ex3.calls == 7 * 3 + 2                 # generations 4-10 and the validation only
+    assert ex3.calls == 7 * 3 + 2       # generations 4-10 and the validation only (no baseline)
     assert r2.best == r.best and r2.validation == r.validation
     # another chunk size: the same candidates, outcomes and result
     r3 = _run(spec, tmp_path / "c" / "t.toml", Analytic(spec), batch=5)
@@ -255,6 +262,7 @@ def test_tuner_end_to_end_resume_and_report(tmp_path):
     assert rep["figures"] == ["tuning_progress.png", "tuning_params.png"]
     s = (tmp_path / "a" / "t_tune" / "summary.md").read_text()
     assert "| 10 | 6 |" in s and "Validation on 16 held-out rollouts (seed 1)" in s
+    assert f"search's draws: 0/4 unsafe, mean objective {z.objective:.6g}" in s
     assert f"- gain_scale.arms = {b.params['gain_scale.arms']:.6g}" in s
 
 

@@ -45,6 +45,9 @@ def progress_figure(t: dict, path: Path) -> None:
     fig, ax = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     ax[0].plot(g, best_gen, "o", label="best safe candidate of the generation")
     ax[0].plot(g, so_far, "-", label="best so far")
+    z = t.get("baseline") or {}
+    if z and _safe(z):
+        ax[0].axhline(z["objective"], color="grey", ls="--", label="baseline (the spec's values)")
     ax[0].set(ylabel="objective (mean over the draws)", title=f"{t['method']} on "
               f"{Path(t['spec_path']).name}: {t['used']} rollouts")
     ax[0].legend(fontsize=8)
@@ -99,6 +102,13 @@ def summary(t: dict, figures: list) -> str:
         bs = x["best"]["objective"] if _safe(x["best"]) else float("nan")
         lines.append(f"| {x['generation']} | {len(x['candidates'])} | {len(safe)} | "
                      f"{x['unsafe']}/{x['rollouts']} | {bg:.5g} | {bs:.5g} |")
+    z = t.get("baseline")
+    if z:
+        lines += ["", "Baseline, the tuned parameters at the spec's values ("
+                  + ", ".join(f"{k} = {v:.4g}" for k, v in z["params"].items()) + ") on the "
+                  "search's draws: " + (f"refused ({z['refused']})" if z["refused"] else
+                                        f"{z['unsafe']}/{z['n']} unsafe, mean objective "
+                                        f"{z['objective']:.6g}") + "."]
     lines += ["", "## Result", ""]
     lines += [f"- {k} = {v:.6g}" for k, v in b["params"].items()]
     lines.append(f"- search: {b['unsafe']}/{b['n']} rollouts unsafe, mean objective "

@@ -283,6 +283,12 @@ class TuneResult:
     used: int
     stop: str
     run_args: str = ""
+    baseline: Candidate | None = None
+    units: dict = dataclasses.field(default_factory=dict)
+
+    def margins(self, hmin: dict) -> str:
+        return ", ".join(f"{k} {h:.4g} {self.units.get(k, '')}".rstrip()
+                         for k, h in hmin.items()) or "(no barrier)"
 
     def summary(self) -> str:
         b = self.best
@@ -292,13 +298,17 @@ class TuneResult:
                  f"  search: {b.unsafe}/{b.n} unsafe, mean objective {b.objective:.4g}"
                  + ("" if b.safe else "  (WARNING: no candidate was safe on every draw; "
                     "this is the least unsafe)")]
+        z = self.baseline
+        if z is not None:
+            lines.append("  baseline (the spec's values): " + (
+                f"refused: {z.refused}" if z.refused else
+                f"{z.unsafe}/{z.n} unsafe, mean objective {z.objective:.4g}"))
         v = self.validation
         if v:
             lines.append(f"  validation on {v['n']} held-out rollouts: {v['unsafe']} unsafe "
                          f"(rate {v['rate']:.3f}, Wilson 95% CI [{v['ci'][0]:.3f}, "
                          f"{v['ci'][1]:.3f}]), mean objective {v['objective']:.4g}, worst "
-                         "min h " + (", ".join(f"{k} {h:.4g}" for k, h in v["hmin"].items())
-                                     or "(no barrier)"))
+                         f"min h {self.margins(v['hmin'])}")
         lines.append(f"wrote {self.out} (safewbc run {self.scenario}{self.run_args} --params "
                      f"{self.out}); generations in {self.work}")
         return "\n".join(lines)
@@ -309,9 +319,15 @@ def _make_search(cfg: TuneConfig, params, base, seed):
 
     if cfg.method == "grid":
         return search.GridRefine(len(params), cfg.points, cfg.rounds, cfg.shrink)
-    x0 = np.array([float(p.to_unit(p.start if p.start is not None else _base_value(base, p)))
-                   for p in params])
-    return search.Cmaes(x0, cfg.sigma, cfg.population, seed)
+    return search.Cmaes(np.array([p.to_unit(v) for p, v in zip(params, _start(params, base))]),
+                        cfg.sigma, cfg.population, seed)
+
+
+def _start(params, base) -> np.ndarray:
+    """The start value of each tuned parameter: ``start``, else the spec's own value,
+    clipped into the bounds. CMA-ES starts there, and the baseline is rolled out there."""
+    return np.array([float(np.clip(p.start if p.start is not None else _base_value(base, p),
+                                   p.lo, p.hi)) for p in params])
 
 
 @dataclasses.dataclass
@@ -397,16 +413,40 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
                dict(batch=batch, executor=executor, progress=progress, quiet=quiet,
                     engine=engine, workers=workers), title, say)
     try:
+        head["baseline"] = dataclasses.asdict(_baseline(run))
         gens, best, used, stop = _search(run, _make_search(cfg, params, base, seed), state,
                                          head)
         validation = _validate(run, best) if cfg.validate else None
     finally:
         if own_pool is not None:
             own_pool.close()
-    run_args = _write_params(run, out, best, gens, used, stop, validation)
+    run_args = _write_params(run, out, best, gens, used, stop, validation,
+                             Candidate(**head["baseline"]))
     _write(state, head, gens, best, used, validation, stop)
     return TuneResult(best, validation, gens, out, work, spec.scenario, cfg.method, used,
-                      stop, run_args)
+                      stop, run_args, Candidate(**head["baseline"]), _units(spec))
+
+
+def _units(spec) -> dict:
+    """Barrier name -> the unit of its h ("m", "rad", ...)."""
+    from safewbc_jax import scenarios
+
+    sc = scenarios.get_scenario(spec.scenario, True, spec.safe_sets)
+    return {s.name: s.unit for s in sc.safe_sets}
+
+
+def _baseline(run: _Run) -> Candidate:
+    """The tuned parameters at their start values (the spec's own, clipped to the
+    bounds) on the search's draws (``WORK/baseline``): what tuning is measured against.
+    Its rollouts are not counted in the budget."""
+    vals = _start(run.params, run.base)[None]
+    c = Candidate({p.name: float(v) for p, v in zip(run.params, vals[0])})
+    c.refused = _refusal(vals, run.params, run.base, run.etas)[0]
+    if not c.refused:
+        cols = run.roll(run.rows(vals, range(len(run.dist_rows))), run.work / "baseline",
+                        run.seed, f"[{run.title}] baseline:", noise_period=run.n_draws)
+        _evaluate(run.spec, run.cfg.weights, cols, len(run.dist_rows), [c])
+    return c
 
 
 def _search(run: _Run, search, state: Path, head: dict):
@@ -481,7 +521,7 @@ def _validate(run: _Run, best: Candidate) -> dict:
             "objective": c.objective, "hmin": c.hmin}
 
 
-def _write_params(run: _Run, out: Path, best, gens, used, stop, validation) -> str:
+def _write_params(run: _Run, out: Path, best, gens, used, stop, validation, baseline) -> str:
     """The params TOML: every parameter, the tuned ones set, and a header with the search's
     and the validation's figures. Returns the extra ``safewbc run`` arguments."""
     from safewbc_jax.params import apply_overrides, load_overrides, to_toml
@@ -493,13 +533,19 @@ def _write_params(run: _Run, out: Path, best, gens, used, stop, validation) -> s
     tuned = type(one)(**{f.name: unbatch(getattr(one, f.name))
                          for f in dataclasses.fields(one)})
     run_args = "".join(f" --safe-set {r}" for r in spec.safe_sets)
-    margins = lambda h: ", ".join(f"{k} {v:.6g}" for k, v in h.items()) or "no barrier"  # noqa: E731
+    units = _units(spec)
+    margins = lambda h: ", ".join(f"{k} {v:.6g} {units.get(k, '')}".rstrip()  # noqa: E731
+                                  for k, v in h.items()) or "no barrier"
     header = [f"# safewbc {run.title} {spec.path} ({cfg.method}, seed {run.seed}): "
               + ", ".join(f"{k} = {v:.6g}" for k, v in best.params.items()),
               f"# search: {len(gens)} generations, {used} rollouts ({stop}); best over "
               f"{best.n} rollouts: {best.unsafe} unsafe, mean objective "
               f"{' + '.join(f'{w:g} {k}' for k, w in cfg.weights.items())} = "
-              f"{best.objective:.6g}"]
+              f"{best.objective:.6g}",
+              "# baseline, the spec's values on the search's draws: " + (
+                  f"refused ({baseline.refused})" if baseline.refused else
+                  f"{baseline.unsafe} of {baseline.n} unsafe, mean objective "
+                  f"{baseline.objective:.6g}")]
     if validation:
         v = validation
         header += [f"# validation on {v['n']} held-out rollouts (seed {v['seed']}): "
