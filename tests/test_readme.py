@@ -97,6 +97,9 @@ def test_safewbc_commands_parse(capsys):
                 f"written by a command before it")
         if getattr(args, "out", None):
             written.add(args.out)
+        if args.command in ("tune", "tune-poles"):      # and the folder of its generations
+            suffix = "_tune" if args.command == "tune" else "_rounds"
+            written.add(args.work or args.out.removesuffix(".toml") + suffix)
         checked += 1
     assert checked
 

@@ -107,6 +107,16 @@ def test_tune_config_defaults_and_budget(tmp_path):
     with pytest.raises(SpecError, match=r"grid axes \['mu'\]"):
         tuning.config(spec_from(tmp_path, SPEC.replace("[grid]\n", "[grid]\nmu = [0.5, 0.9]\n"),
                                 "m.toml"))
+    # a single fixed value is a setting, not a distribution; a grid over a tuned parameter
+    # is the sweep's and is left out; a single value on a tuned output's gains is refused
+    ok = spec_from(tmp_path, SPEC.replace("[grid]\n", "[grid]\nmu = [0.6]\n"
+                                          "\"gain_scale.arms\" = [1.0, 2.0]\n"), "f.toml")
+    axes, rows = tuning.distribution(ok, tuning.config(ok).params)
+    assert [a.name for a in axes] == ["mu", "push.magnitude"]
+    np.testing.assert_array_equal(rows, [[0.6, 0.0], [0.6, 10.0]])
+    with pytest.raises(SpecError, match=r"grid axes \['kp.arms'\]"):
+        tuning.config(spec_from(tmp_path, SPEC.replace("[grid]\n", "[grid]\n\"kp.arms\" = [50.0]\n"),
+                                "k.toml"))
     # without tune.params and without an enforced barrier there is nothing to tune
     no = SPEC.split("[tune.params]")[0]
     with pytest.raises(SpecError, match="nothing to tune"):

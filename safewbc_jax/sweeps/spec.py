@@ -673,8 +673,6 @@ def _parse_tune_param(src, key, value, info, axes, defaults) -> TuneParam:
         raise SpecError(f"{src}: {where}: a threshold defines the safe set itself; tuning "
                         "it would move the constraint (fix it in [params])")
     axis = _parse_axis(src, key, (lo, hi), info)
-    if any(a.name == key for a in axes):
-        raise SpecError(f"{src}: {where} is also a [grid] axis; give it in one place")
     scale = value.get("scale", "log" if lo > 0 else "linear")
     if scale not in ("log", "linear"):
         raise SpecError(f"{src}: {where}.scale = {_fmt(scale)}: expected \"log\" or \"linear\"")

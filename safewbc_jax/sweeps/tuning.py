@@ -160,15 +160,22 @@ def poles_preset(spec: SweepSpec) -> tuple:
 
 
 def distribution(spec: SweepSpec, params) -> tuple:
-    """(axes, rows) of the distribution: the spec's push axes (every combination). The
-    other [grid] axes must be the tuned ones (their grid only narrows the preset's box)."""
+    """(axes, rows) of the distribution: the spec's push axes (every combination). A
+    [grid] axis of a tuned parameter (or any pole axis of a barrier whose poles are tuned)
+    is the sweep's, not the tuner's: it is left out. Any other axis must be a push, or a
+    single value on something not tuned (a fixed setting)."""
     tuned = {p.axis.target for p in params if p.axis.kind in ("poles", "pole")}
-    other = [a for a in spec.axes if not (a.kind in ("poles", "pole") and a.target in tuned)]
-    bad = [a.name for a in other if a.kind != "push"]
+    names = {p.name for p in params}
+    targets = {p.axis.target for p in params}
+    other = [a for a in spec.axes if a.name not in names
+             and not (a.kind in ("poles", "pole") and a.target in tuned)]
+    bad = [a.name for a in other if a.kind != "push" and (len(a.values) > 1
+                                                         or a.target in targets)]
     if bad:
         raise SpecError(f"{spec.path}: tune runs over the push distribution; grid axes {bad} "
-                        "are neither pushes nor tuned poles (give fixed values in [params], "
-                        "or tune them in tune.params)")
+                        "are neither pushes nor tuned parameters, nor single fixed values of "
+                        "something not tuned (give fixed values in [params], or tune them in "
+                        "tune.params)")
     if not other:
         return (), np.zeros((1, 0))
     g = np.meshgrid(*[np.asarray(a.values) for a in other], indexing="ij")
