@@ -99,10 +99,10 @@ def test_killed_tuning_resumes_and_workers_do_not_change_it(tunes):
             assert 0.5 <= c["params"]["gain_scale.arms"] <= 2.0
             assert np.isfinite(c["objective"]) and c["objective"] > 0
     v = a["validation"]
-    assert v["n"] == 2 and v["unsafe"] == 0 and v["seed"] == 1
+    assert v["n"] == 2 and v["unsafe"] == 0 and v["seed"] == 8      # the spec's seed 7, + 1
     # the params file carries the result and its validation, and the run command
     text = t["paths"][0].read_text()
-    assert "# validation on 2 held-out rollouts (seed 1): 0 unsafe" in text
+    assert "# validation on 2 held-out rollouts (seed 8): 0 unsafe" in text
     assert "--safe-set" in text and "--params" in text
     assert "validation on 2 held-out rollouts" in t["resume"].stdout
 
@@ -122,4 +122,4 @@ def test_mjx_engine_tunes_the_same_spec(tunes):
         assert x["unsafe"] == y["unsafe"] == 0
         assert abs(x["hmin"]["left_fist"] - y["hmin"]["left_fist"]) < 1e-4
         assert x["objective"] == pytest.approx(y["objective"], rel=1e-2)
-    assert c["validation"]["n"] == 2 and c["validation"]["unsafe"] == 0
+    assert c["validation"]["n"] == 2 and c["validation"]["unsafe"] == 0 and c["validation"]["seed"] == 8
