@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from test_sweeps_rollouts import ROOT, SPEC, sweep_env
+from test_sweeps_rollouts import SPEC, sweep_env
 
 TUNE = SPEC.replace('[grid]\n"poles.left_fist.p1" = [5.0, 20.0]\n', "[grid]\n") + """
 [tune]
