@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files only, no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -18,7 +19,7 @@ def _plt():
 
 def output_figures(log: dict, run: dict, labels: dict, out_dir: Path) -> list[Path]:
     """One PNG per output: each component's actual and reference against time."""
-    plt = _plt()
+    plt = pyplot()
     files = []
     t = log["t"]
     for nm in run["outputs"]:
@@ -52,7 +53,7 @@ def barrier_figure(log: dict, run: dict, out_dir: Path, title: str) -> Path | No
     names = run["barriers"] + run["monitors"]
     if not names:
         return None
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.2))
     for nm in names:
         style = "-" if nm in run["barriers"] else ":"
@@ -78,7 +79,7 @@ def walking_figures(log: dict, run: dict, out_dir: Path, window: float = 2.5) ->
     (blue) against reference (red, dashed), over the whole walk and over a ``window`` (s)
     from its middle; then the ALIP state about the stance foot (L^alip, the prediction
     of its end-of-step value, the planned step) with the step switches marked."""
-    plt = _plt()
+    plt = pyplot()
     t, tau = log["t"], log["tau"]
     walk = tau >= 0
     if not np.any(walk):

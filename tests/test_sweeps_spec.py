@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from safewbc_jax.sweeps import spec as spec_mod
+from safewbc_jax.sweeps import inputs
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.spec import SpecError, load_spec
 from safewbc_jax.sweeps.stats import wilson_interval
@@ -196,9 +196,9 @@ mu = 0.7
 "weight_scale.com" = [0.5]
 f_min = [20.0]
 """)
-    base = spec_mod.base_params(s)
+    base = inputs.base_params(s)
     vals = s.settings_array()
-    p = spec_mod.params_batch(base, s.axes, vals)
+    p = inputs.params_batch(base, s.axes, vals)
     assert np.asarray(p.poles["left_fist"]).tolist() == [[3.0, 3.0], [5.0, 5.0]]
     assert np.asarray(p.poles["right_fist"])[:, 1].tolist() == [7.0, 7.0]
     assert np.asarray(p.threshold["left_fist"]).tolist() == [0.04, 0.04]
@@ -217,21 +217,21 @@ f_min = [20.0]
 def test_push_and_perturbations(tmp_path):
     s = spec_from(tmp_path, GOOD + '\n[push]\ndirection = 90.0\n')
     vals = s.settings_array()
-    push = spec_mod.push_arrays(s, vals)
+    push = inputs.push_arrays(s, vals)
     np.testing.assert_allclose(push["fx"], 0.0, atol=1e-12)
     np.testing.assert_allclose(push["fy"], vals[:, 2])
     import mujoco
 
     from safewbc_jax import paths
     m = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
-    std = spec_mod.velocity_std(s, m)
+    std = inputs.velocity_std(s, m)
     assert std.shape == (m.nv,) and np.all(std[:3] == 0.01) and np.all(std[3:] == 0.0)
     # rollout k's draw depends on (seed, k) only, not on the chunk it is in
-    a = spec_mod.perturbations(3, np.arange(10), std)
-    b = np.concatenate([spec_mod.perturbations(3, np.arange(0, 4), std),
-                        spec_mod.perturbations(3, np.arange(4, 10), std)])
+    a = inputs.perturbations(3, np.arange(10), std)
+    b = np.concatenate([inputs.perturbations(3, np.arange(0, 4), std),
+                        inputs.perturbations(3, np.arange(4, 10), std)])
     np.testing.assert_array_equal(a, b)
-    assert not np.array_equal(a, spec_mod.perturbations(4, np.arange(10), std))
+    assert not np.array_equal(a, inputs.perturbations(4, np.arange(10), std))
     assert np.all(a[:, 3:] == 0.0) and 0.002 < np.std(a[:, :3]) < 0.03
 
 

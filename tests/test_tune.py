@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from safewbc_jax.sweeps import spec as spec_mod
+from safewbc_jax.sweeps import inputs
 from safewbc_jax.sweeps import tuning
 from safewbc_jax.sweeps.search import Cmaes, GridRefine
 from safewbc_jax.sweeps.spec import SpecError, load_spec
@@ -47,7 +47,7 @@ class Analytic:
     Counts its calls (one per chunk)."""
 
     def __init__(self, spec, fail_at_call=None):
-        self.base = spec_mod.base_params(spec)
+        self.base = inputs.base_params(spec)
         self.calls = 0
         self.fail_at_call = fail_at_call
 
@@ -244,7 +244,7 @@ def test_tuner_end_to_end_resume_and_report(tmp_path):
     assert "# validation on 16 held-out rollouts (seed 1): 0 unsafe" in text
     assert f"0 of 4 unsafe, mean objective {z.objective:.6g}" in text
     ov = load_overrides(tmp_path / "a" / "t.toml")
-    base = spec_mod.base_params(spec)
+    base = inputs.base_params(spec)
     np.testing.assert_allclose(np.asarray(ov["kp"]["arms"]),
                                np.asarray(base.kp["arms"]) * b.params["gain_scale.arms"])
     np.testing.assert_allclose(np.asarray(ov["kd"]["arms"]),

@@ -2,6 +2,7 @@
 
 * :mod:`.spec`   sweep spec files (TOML): parsing, validation before anything compiles,
                  the plan of rollouts (settings x repeats) and their inputs;
+* :mod:`.inputs` each rollout's parameters, push and perturbation from a spec;
 * :mod:`.table`  the results table: one Parquet file per finished chunk, written
                  atomically, read back as one table; the manifest that makes resume safe;
 * :mod:`.run`    ``safewbc sweep``: chunks of batched rollouts through

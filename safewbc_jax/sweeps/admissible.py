@@ -42,15 +42,15 @@ def check_sweep(spec: SweepSpec, base, settings: np.ndarray, seed: int, std: np.
     """Raise PoleError (naming the rollout, its setting and the bound) unless every rollout
     of the sweep has Theorem-1 admissible poles at its own start state."""
     from safewbc_jax import barriers
-    from safewbc_jax.sweeps import spec as spec_mod
+    from safewbc_jax.sweeps import inputs
 
     if not spec.barrier or not spec.barriers:
         return
     n = spec.n_rollouts
     rollouts = np.arange(n)
     vals = settings[rollouts // spec.repeats]
-    params = spec_mod.params_batch(base, spec.axes, vals)
-    dv = spec_mod.perturbations(seed, rollouts, std, spec.noise_period)
+    params = inputs.params_batch(base, spec.axes, vals)
+    dv = inputs.perturbations(seed, rollouts, std, spec.noise_period)
     for name in spec.barriers:
         thr = np.asarray(params.threshold[name])
         poles = np.asarray(params.poles[name])

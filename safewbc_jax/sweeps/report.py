@@ -22,17 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from safewbc_jax.plots import pyplot
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.stats import wilson_interval
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def load(out) -> tuple[dict, dict]:
@@ -118,7 +110,7 @@ def poles_figure(man, cols, oc, path) -> bool:
     pc = _pole_columns(man, cols)
     if not pc:
         return False
-    plt = _plt()
+    plt = pyplot()
     t = man["target"]
     if len(pc) == 1:
         uniq, inv = group(cols, pc)
@@ -183,7 +175,7 @@ def push_figure(man, cols, oc, path) -> bool:
     dirs = np.unique(cols["push.direction"])
     if len(mags) < 2 and len(dirs) < 2:
         return False
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.5))
     if len(mags) >= 2:
         ix = np.searchsorted(mags, cols["push.magnitude"])
@@ -223,7 +215,7 @@ def tracking_figure(man, cols, oc, path) -> bool:
             and np.any(np.isfinite(np.asarray(cols[f"tracking_rms.{o}"], float)))]
     if not outs or not np.any(np.isfinite(oc["hmin"])):
         return False
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(1, len(outs), figsize=(4.2 * len(outs), 4), squeeze=False)
     ctrl, _ = axis_kinds(man)
     uniq, inv = group(cols, ctrl)
@@ -256,7 +248,7 @@ def axes_figure(man, cols, oc, path) -> bool:
     axes = [a for a in ctrl if a not in pc and len(np.unique(cols[a])) > 1]
     if not axes:
         return False
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(2, len(axes), figsize=(4.2 * len(axes), 7), squeeze=False)
     for j, a in enumerate(axes):
         xs, ix = np.unique(cols[a], return_inverse=True)

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from safewbc_jax.progress import Progress
-from safewbc_jax.sweeps import spec as spec_mod
+from safewbc_jax.sweeps import inputs
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.spec import SweepSpec
 
@@ -105,9 +105,9 @@ def chunk_inputs(spec: SweepSpec, base, settings: np.ndarray, rollouts: np.ndarr
     perturbation (len, nv), per-rollout columns to write)."""
     setting = rollouts // spec.repeats
     vals = settings[setting]
-    params = spec_mod.params_batch(base, spec.axes, vals)
-    push = spec_mod.push_arrays(spec, vals)
-    dv = spec_mod.perturbations(seed, rollouts, std, spec.noise_period)
+    params = inputs.params_batch(base, spec.axes, vals)
+    push = inputs.push_arrays(spec, vals)
+    dv = inputs.perturbations(seed, rollouts, std, spec.noise_period)
     cols = {"rollout": rollouts.astype(np.int64), "setting": setting.astype(np.int64),
             "repeat": (rollouts % spec.repeats).astype(np.int64)}
     for j, a in enumerate(spec.axes):
@@ -144,8 +144,8 @@ def preflight(spec: SweepSpec, seed: int | None = None, *, check_poles: bool = T
     (``admissible.check_sweep``; seconds, one small jit). Returns (base params, velocity
     std, settings array) for the run. ``seed`` None: the spec's."""
     seed = spec.seed if seed is None else int(seed)
-    base = spec_mod.base_params(spec)
-    std = spec_mod.velocity_std(spec, sim_model())
+    base = inputs.base_params(spec)
+    std = inputs.velocity_std(spec, sim_model())
     settings = spec.settings_array()
     if check_poles:
         from safewbc_jax.sweeps.admissible import check_sweep

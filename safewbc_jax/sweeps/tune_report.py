@@ -16,17 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
+from safewbc_jax.plots import pyplot
+
 TUNING = "tuning.json"
 
 
 def is_tuning(out) -> bool:
     return (Path(out) / TUNING).is_file()
-
-
-def _plt():
-    from safewbc_jax.sweeps.report import _plt as plt
-
-    return plt()
 
 
 def _safe(c: dict) -> bool:
@@ -35,7 +31,7 @@ def _safe(c: dict) -> bool:
 
 
 def progress_figure(t: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     gens = t["generations"]
     g = [x["generation"] for x in gens]
     best_gen = [min([c["objective"] for c in x["candidates"] if _safe(c)], default=np.nan)
@@ -59,7 +55,7 @@ def progress_figure(t: dict, path: Path) -> None:
 
 
 def params_figure(t: dict, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     ps = t["params"]
     fig, axs = plt.subplots(len(ps), 1, figsize=(7, 2.2 * len(ps) + 0.6), sharex=True,
                             squeeze=False)

@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from safewbc_jax.sweeps import inputs
 from safewbc_jax.sweeps import spec as spec_mod
 from safewbc_jax.sweeps.spec import Axis, SpecError, SweepSpec, TuneParam
 from safewbc_jax.sweeps.stats import wilson_interval
@@ -206,8 +207,8 @@ def _theorem1(spec, cfg, base, seed, n_draws, say):
     tuned = sorted({p.axis.target for p in cfg.params if p.axis.kind in ("poles", "pole")})
     if not spec.barrier or not tuned:
         return cfg.params, {}
-    std = spec_mod.velocity_std(spec, sim_model())
-    draws = spec_mod.perturbations(seed, np.arange(n_draws), std)
+    std = inputs.velocity_std(spec, sim_model())
+    draws = inputs.perturbations(seed, np.arange(n_draws), std)
     etas, params = {}, list(cfg.params)
     for name in tuned:
         thr = np.full(n_draws, float(np.asarray(base.threshold[name])))
@@ -239,7 +240,7 @@ def _refusal(cand_vals: np.ndarray, cfg_params, base, etas: dict) -> list:
     out = [""] * len(cand_vals)
     if not etas:
         return out
-    pb = spec_mod.params_batch(base, tuple(p.axis for p in cfg_params), cand_vals)
+    pb = inputs.params_batch(base, tuple(p.axis for p in cfg_params), cand_vals)
     for name, e in etas.items():
         ok = admissible.admissible_mask(name, np.asarray(pb.poles[name]), e)
         for c in np.flatnonzero(~ok):
@@ -396,7 +397,7 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
     seed = spec.seed if seed is None else int(seed)
     dist_axes, dist_rows = distribution(spec, cfg.params)
     n_draws = len(dist_rows) * spec.repeats
-    base = spec_mod.base_params(spec)
+    base = inputs.base_params(spec)
     params, etas = _theorem1(spec, cfg, base, seed, n_draws, say)
     head = {"method": cfg.method, "seed": seed, "budget": cfg.budget,
             "params": [{"name": p.name, "lo": p.lo, "hi": p.hi, "scale": p.scale}
@@ -534,7 +535,7 @@ def _write_params(run: _Run, out: Path, best, gens, used, stop, validation, base
     from safewbc_jax.params import apply_overrides, load_overrides, to_toml
 
     spec, cfg = run.spec, run.cfg
-    one = spec_mod.params_batch(run.base, tuple(p.axis for p in run.params),
+    one = inputs.params_batch(run.base, tuple(p.axis for p in run.params),
                                 np.array([[best.params[p.name] for p in run.params]]))
     unbatch = lambda v: {k: x[0] for k, x in v.items()} if isinstance(v, dict) else v[0]  # noqa: E731
     tuned = type(one)(**{f.name: unbatch(getattr(one, f.name))
