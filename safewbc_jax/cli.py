@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 import json
 import sys
 
@@ -123,20 +122,17 @@ def _cmd_tune(args) -> int:
     from safewbc_jax.sweeps import tuning
     from safewbc_jax.sweeps.spec import load_spec
 
+    from safewbc_jax.sweeps.tune import poles_config
+
     spec = load_spec(args.spec)          # the spec and its [tune] table, before any compile
-    method = "grid" if args.command == "tune-poles" else args.method
-    params = tuning.poles_preset(spec) if args.command == "tune-poles" else None
-    cfg = tuning.config(spec, method=method, budget=args.budget, validate=args.validate,
-                        params=params)
+    cfg = (poles_config(spec, budget=args.budget, validate=args.validate)
+           if args.command == "tune-poles" else
+           tuning.config(spec, method=args.method, budget=args.budget, validate=args.validate))
     _check_engine(args)
     _compile_cache(args)
-    out = Path(args.out)
-    if out.suffix != ".toml":
-        raise ValueError(f"--out {out}: expected a .toml file (a params file for safewbc run)")
-    work = args.work or out.with_name(out.stem + ("_rounds" if args.command == "tune-poles"
-                                                  else "_tune"))
+    work = args.work or tuning.default_work(args.out, args.command)
     try:
-        r = tuning.tune(spec, out, cfg=cfg, work=work, batch=args.batch, seed=args.seed,
+        r = tuning.tune(spec, args.out, cfg=cfg, work=work, batch=args.batch, seed=args.seed,
                         quiet=args.quiet, engine=args.engine, workers=args.workers,
                         title=args.command)
     except KeyboardInterrupt:

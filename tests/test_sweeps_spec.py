@@ -323,6 +323,22 @@ def test_report_from_a_table(tmp_path):
     assert "## By push condition" in text
 
 
+def test_report_objective_uses_the_spec_weights(tmp_path):
+    """A manifest's objective_weights (tune.objective as a table) weight the report's
+    objective as the tuner does; a manifest without them sums its objective list."""
+    from safewbc_jax.sweeps.report import outcome
+
+    _, cols = _fake_table(tmp_path)
+    man = {"target": "left_fist", "violation_tol": 0.0, "outputs": ["com", "arms"],
+           "objective": ["tracking_rms.arms", "tracking_rms.com"]}
+    np.testing.assert_allclose(outcome(man, cols)["objective"],
+                               cols["tracking_rms.arms"] + cols["tracking_rms.com"], rtol=1e-12)
+    man["objective_weights"] = {"tracking_rms.arms": 2.0, "tracking_rms.com": -0.5}
+    np.testing.assert_allclose(outcome(man, cols)["objective"],
+                               2.0 * cols["tracking_rms.arms"] - 0.5 * cols["tracking_rms.com"],
+                               rtol=1e-12)
+
+
 def test_cli_sweep_help_lists_options():
     r = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "sweep", "--help"],
                        capture_output=True, text=True, timeout=120,

@@ -47,11 +47,29 @@ def outcome(man: dict, cols: dict) -> dict:
         hmin = np.full(n, np.nan)
     fell = np.asarray(cols.get("fell", np.zeros(n, bool)), bool)
     violated = np.asarray(hmin < -tol) & ~np.isnan(hmin)
-    obj_names = man.get("objective") or [f"tracking_rms.{o}" for o in man.get("outputs", [])]
-    obj_names = [c for c in obj_names if c in cols]
-    objective = np.sum([cols[c] for c in obj_names], axis=0) if obj_names else np.full(n, np.nan)
+    weights = (man.get("objective_weights")
+               or dict.fromkeys(man.get("objective") or [f"tracking_rms.{o}"
+                                                         for o in man.get("outputs", [])], 1.0))
+    weights = {c: w for c, w in weights.items() if c in cols}
+    obj_names = list(weights)
+    objective = weighted_objective(cols, weights) if weights else np.full(n, np.nan)
     return {"violated": violated, "fell": fell, "unsafe": violated | fell, "hmin": hmin,
             "objective": objective, "objective_names": obj_names}
+
+
+def _term(man: dict, name: str) -> str:
+    w = (man.get("objective_weights") or {}).get(name, 1.0)
+    return name if w == 1.0 else f"{w:g} {name}"
+
+
+def weighted_objective(cols: dict, weights: dict) -> np.ndarray:
+    """Per rollout, sum of weight x metric column (``tune.objective``); NaN where a metric
+    is NaN or missing from the table."""
+    n = len(cols["rollout"])
+    total = np.zeros(n)
+    for name, w in weights.items():
+        total = total + (w * np.asarray(cols[name], float) if name in cols else np.nan)
+    return total
 
 
 def axis_kinds(man: dict) -> tuple[list, list]:
@@ -289,7 +307,7 @@ def summary(man, cols, oc, figures, top: int = 5) -> str:
               f"- target barrier: `{man.get('target')}`; a rollout violates it when min h < "
               f"-{man.get('violation_tol', 0.0)}; barriers enforced: "
               f"{', '.join(man.get('barriers', [])) or 'none'}",
-              f"- tracking objective: {' + '.join(oc['objective_names']) or 'none'}", ""]
+              f"- tracking objective: {' + '.join(_term(man, c) for c in oc['objective_names']) or 'none'}", ""]
     tot = group_stats(oc, np.zeros(n, int), 1)
     flo, fhi = wilson_interval(int(tot["falls"][0]), n)
     lines += ["## Overall (95% Wilson intervals)", "",

@@ -207,6 +207,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 "outputs": list(spec.outputs), "target": spec.target,
                 "violation_tol": spec.violation_tol, "repeats": spec.repeats,
                 "objective": list(spec.tune.get("objective", [])),
+                "objective_weights": dict(spec.tune.get("weights", {})),
                 "safe_sets": list(spec.safe_sets), "engine": engine}
     if engine == "mujoco":      # rollouts side by side per worker: rounding depends on it
         manifest["lockstep"] = pool_mod.LOCKSTEP

@@ -16,16 +16,18 @@ from safewbc_jax.sweeps import tuning
 from safewbc_jax.sweeps.spec import SweepSpec
 
 
+def poles_config(spec: SweepSpec, *, budget=None, validate=None) -> tuning.TuneConfig:
+    """The preset: grid refinement over the poles of ``tune.barrier``."""
+    return tuning.config(spec, method="grid", budget=budget, validate=validate,
+                         params=tuning.poles_preset(spec))
+
+
 def tune_poles(spec: SweepSpec, out, *, work=None, batch=None, seed=None, executor=None,
                progress=None, quiet=False, engine="mjx", workers=None, budget=None,
                validate=None) -> tuning.TuneResult:
     """Grid refinement over the poles of ``tune.barrier``; ``work`` defaults to OUT
     without .toml + "_rounds". The other arguments are :func:`tuning.tune`'s."""
-    from pathlib import Path
-
-    cfg = tuning.config(spec, method="grid", budget=budget, validate=validate,
-                        params=tuning.poles_preset(spec))
-    out = Path(out)
-    return tuning.tune(spec, out, cfg=cfg, work=work or out.with_name(out.stem + "_rounds"),
-                       batch=batch, seed=seed, executor=executor, progress=progress,
-                       quiet=quiet, engine=engine, workers=workers, title="tune-poles")
+    return tuning.tune(spec, out, cfg=poles_config(spec, budget=budget, validate=validate),
+                       work=work, batch=batch, seed=seed, executor=executor,
+                       progress=progress, quiet=quiet, engine=engine, workers=workers,
+                       title="tune-poles")

@@ -47,6 +47,7 @@ import numpy as np
 
 from safewbc_jax.sweeps import inputs
 from safewbc_jax.sweeps import spec as spec_mod
+from safewbc_jax.sweeps.report import weighted_objective
 from safewbc_jax.sweeps.spec import Axis, SpecError, SweepSpec, TuneParam
 from safewbc_jax.sweeps.stats import wilson_interval
 
@@ -123,8 +124,8 @@ def config(spec: SweepSpec, *, method=None, budget=None, validate=None,
     else:
         per_gen = t.get("population") or 4 + int(np.floor(3 * np.log(d)))
         default_budget = 10 * per_gen * n_dist
-    budget = default_budget if budget is None and "budget" not in t else (
-        budget if budget is not None else t["budget"])
+    if budget is None:
+        budget = t.get("budget", default_budget)
     if budget < per_gen * n_dist:
         raise SpecError(f"{spec.path}: a budget of {budget} rollouts is less than one "
                         f"generation ({per_gen} candidates x {n_dist} rollouts of the "
@@ -177,10 +178,8 @@ def distribution(spec: SweepSpec, params) -> tuple:
                         "are neither pushes nor tuned parameters, nor single fixed values of "
                         "something not tuned (give fixed values in [params], or tune them in "
                         "tune.params)")
-    if not other:
-        return (), np.zeros((1, 0))
-    g = np.meshgrid(*[np.asarray(a.values) for a in other], indexing="ij")
-    return tuple(other), np.stack([x.reshape(-1) for x in g], axis=1)
+    other = tuple(other)
+    return other, dataclasses.replace(spec, axes=other, rows=None).settings_array()
 
 
 def _base_value(base, p: TuneParam) -> float:
@@ -262,9 +261,7 @@ def _evaluate(spec, weights, cols, n_per: int, cands: list) -> None:
     for h in hs.values():
         viol |= h < -tol
         lost |= np.isnan(h)
-    obj = np.zeros(n)
-    for name, w in weights.items():
-        obj = obj + w * np.asarray(cols[name], float) if name in cols else obj + np.nan
+    obj = weighted_objective(cols, weights)
     owner = np.asarray(cols["setting"]) // n_per
     for c, cand in enumerate(cands):
         sel = owner == c
@@ -294,10 +291,6 @@ class TuneResult:
     baseline: Candidate | None = None
     units: dict = dataclasses.field(default_factory=dict)
 
-    def margins(self, hmin: dict) -> str:
-        return ", ".join(f"{k} {h:.4g} {self.units.get(k, '')}".rstrip()
-                         for k, h in hmin.items()) or "(no barrier)"
-
     def summary(self) -> str:
         b = self.best
         vals = ", ".join(f"{k} = {v:.4g}" for k, v in b.params.items())
@@ -316,7 +309,7 @@ class TuneResult:
             lines.append(f"  validation on {v['n']} held-out rollouts: {v['unsafe']} unsafe "
                          f"(rate {v['rate']:.3f}, Wilson 95% CI [{v['ci'][0]:.3f}, "
                          f"{v['ci'][1]:.3f}]), mean objective {v['objective']:.4g}, worst "
-                         f"min h {self.margins(v['hmin'])}")
+                         f"min h {format_margins(v['hmin'], self.units, 4)}")
         lines.append(f"wrote {self.out} (safewbc run {self.scenario}{self.run_args} --params "
                      f"{self.out}); generations in {self.work}")
         return "\n".join(lines)
@@ -355,6 +348,7 @@ class _Run:
     sweep_kw: dict           # run_sweep's batch, executor, progress, quiet, engine, workers
     title: str
     say: object
+    units: dict              # barrier -> the unit of its h
 
     def rows(self, vals: np.ndarray, dist_index) -> list:
         return [tuple(v) + tuple(self.dist_rows[d]) for v in vals for d in dist_index]
@@ -376,6 +370,13 @@ class _Run:
         return read_columns(folder)
 
 
+def default_work(out, title: str = "tune") -> Path:
+    """The folder of a run's generations: OUT without .toml + "_tune" ("_rounds" for
+    ``tune-poles``)."""
+    out = Path(out)
+    return out.with_name(out.stem + ("_rounds" if title == "tune-poles" else "_tune"))
+
+
 def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batch=None,
          seed=None, executor=None, progress=None, quiet=False, engine="mjx", workers=None,
          title="tune") -> TuneResult:
@@ -393,7 +394,7 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
     cfg = cfg or config(spec)
     say = progress or ((lambda m: None) if quiet else
                        (lambda m: print(m, file=sys.stderr, flush=True)))
-    work = Path(work) if work else out.with_name(out.stem + "_tune")
+    work = Path(work) if work else default_work(out, title)
     seed = spec.seed if seed is None else int(seed)
     dist_axes, dist_rows = distribution(spec, cfg.params)
     n_draws = len(dist_rows) * spec.repeats
@@ -419,7 +420,7 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
         executor = own_pool = pool_mod.PoolExecutor(spec, workers)
     run = _Run(spec, cfg, params, base, etas, dist_axes, dist_rows, n_draws, work, seed,
                dict(batch=batch, executor=executor, progress=progress, quiet=quiet,
-                    engine=engine, workers=workers), title, say)
+                    engine=engine, workers=workers), title, say, _units(spec))
     try:
         head["baseline"] = dataclasses.asdict(_baseline(run))
         gens, best, used, stop = _search(run, _make_search(cfg, params, base, seed), state,
@@ -432,7 +433,13 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
                              Candidate(**head["baseline"]))
     _write(state, head, gens, best, used, validation, stop)
     return TuneResult(best, validation, gens, out, work, spec.scenario, cfg.method, used,
-                      stop, run_args, Candidate(**head["baseline"]), _units(spec))
+                      stop, run_args, Candidate(**head["baseline"]), run.units)
+
+
+def format_margins(hmin: dict, units: dict, digits: int) -> str:
+    """"barrier value unit, ..." of worst barrier minima, "(no barrier)" without any."""
+    return ", ".join(f"{k} {h:.{digits}g} {units.get(k, '')}".rstrip()
+                     for k, h in hmin.items()) or "(no barrier)"
 
 
 def _units(spec) -> dict:
@@ -541,9 +548,6 @@ def _write_params(run: _Run, out: Path, best, gens, used, stop, validation, base
     tuned = type(one)(**{f.name: unbatch(getattr(one, f.name))
                          for f in dataclasses.fields(one)})
     run_args = "".join(f" --safe-set {r}" for r in spec.safe_sets)
-    units = _units(spec)
-    margins = lambda h: ", ".join(f"{k} {v:.6g} {units.get(k, '')}".rstrip()  # noqa: E731
-                                  for k, v in h.items()) or "no barrier"
     header = [f"# safewbc {run.title} {spec.path} ({cfg.method}, seed {run.seed}): "
               + ", ".join(f"{k} = {v:.6g}" for k, v in best.params.items()),
               f"# search: {len(gens)} generations, {used} rollouts ({stop}); best over "
@@ -559,7 +563,7 @@ def _write_params(run: _Run, out: Path, best, gens, used, stop, validation, base
         header += [f"# validation on {v['n']} held-out rollouts (seed {v['seed']}): "
                    f"{v['unsafe']} unsafe, rate {v['rate']:.4f} (Wilson 95% CI "
                    f"[{v['ci'][0]:.4f}, {v['ci'][1]:.4f}]), mean objective {v['objective']:.6g}",
-                   f"#   worst min h: {margins(v['hmin'])}"]
+                   f"#   worst min h: {format_margins(v['hmin'], run.units, 6)}"]
     else:
         header.append("# not validated on held-out draws (validate = 0)")
     header += [f"# Use: safewbc run {spec.scenario}{run_args} --params {out}", ""]
