@@ -199,6 +199,35 @@ def test_rank_value_orders_safe_first_then_fewest_unsafe_then_shallowest():
     assert not C({}, n=4, objective=float("nan")).safe
 
 
+def test_evaluate_counts_violations_falls_and_lost_rollouts(tmp_path):
+    """A candidate's outcome from a generation's table: a rollout is unsafe when any
+    enforced barrier is below -violation_tol, when it falls, or when it is lost (an error
+    or a NaN barrier minimum); the objective is the weighted mean, NaN when a rollout has
+    none."""
+    spec = spec_from(tmp_path, "[sweep]\nscenario = \"arms\"\nviolation_tol = 0.001\n")
+    assert spec.barriers == ("left_fist",)
+    nan = float("nan")
+    cols = {"rollout": np.arange(8), "setting": np.arange(8) // 2,       # 2 settings each
+            "barrier_min.left_fist": np.array([0.01, -0.0009, -0.0011, 0.02,   # c0: 1 violation
+                                               0.01, nan, 0.03, 0.04]),        # c1: 1 lost
+            "fell": np.array([0, 0, 0, 0, 0, 0, 0, 1], bool),                 # c1: 1 fall
+            "error": np.array(["", "", "", "", "", "", "", ""], object),
+            "tracking_rms.arms": np.array([1.0, 2, 3, 4, 5, 6, 7, 8]),
+            "torque_ratio_max": np.full(8, 0.5)}
+    cands = [tuning.Candidate({}), tuning.Candidate({})]
+    tuning.evaluate(spec, {"tracking_rms.arms": 1.0, "torque_ratio_max": 2.0}, cols, 2, cands)
+    c0, c1 = cands
+    assert (c0.n, c0.unsafe, c0.violations, c0.falls, c0.lost) == (4, 1, 1, 0, 0)
+    assert (c1.n, c1.unsafe, c1.violations, c1.falls, c1.lost) == (4, 2, 0, 1, 1)
+    assert c0.hmin == {"left_fist": -0.0011} and c1.hmin == {"left_fist": 0.01}
+    assert c0.objective == pytest.approx(2.5 + 1.0) and c1.objective == pytest.approx(6.5 + 1.0)
+    assert not c0.safe and not c1.safe
+    cols["error"][0] = "worker died"
+    cols["tracking_rms.arms"][0] = nan
+    tuning.evaluate(spec, {"tracking_rms.arms": 1.0}, cols, 2, cands)
+    assert cands[0].lost == 1 and cands[0].unsafe == 2 and np.isnan(cands[0].objective)
+
+
 def _run(spec, out, executor, **kw):
     return tuning.tune(spec, out, executor=executor, quiet=True, **kw)
 

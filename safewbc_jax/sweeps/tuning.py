@@ -247,7 +247,7 @@ def _refusal(cand_vals: np.ndarray, cfg_params, base, etas: dict) -> list:
     return out
 
 
-def _evaluate(spec, weights, cols, n_per: int, cands: list) -> None:
+def evaluate(spec, weights, cols, n_per: int, cands: list) -> None:
     """Fill each candidate's outcome from a generation's table (candidate c owns the
     rollouts with setting // settings-per-candidate == c)."""
     tol = spec.violation_tol
@@ -460,7 +460,7 @@ def _baseline(run: _Run) -> Candidate:
     if not c.refused:
         cols = run.roll(run.rows(vals, range(len(run.dist_rows))), run.work / "baseline",
                         run.seed, f"[{run.title}] baseline:", noise_period=run.n_draws)
-        _evaluate(run.spec, run.cfg.weights, cols, len(run.dist_rows), [c])
+        evaluate(run.spec, run.cfg.weights, cols, len(run.dist_rows), [c])
     return c
 
 
@@ -499,7 +499,7 @@ def _search(run: _Run, search, state: Path, head: dict):
             cols = run.roll(run.rows(vals[live], range(len(run.dist_rows))),
                             run.work / f"gen-{g:03d}", run.seed,
                             f"[{run.title}] gen {g}, best {bo}:", noise_period=run.n_draws)
-            _evaluate(spec, cfg.weights, cols, len(run.dist_rows), [cands[i] for i in live])
+            evaluate(spec, cfg.weights, cols, len(run.dist_rows), [cands[i] for i in live])
             used += cost
         values = [rank_value(c, tol) for c in cands]
         search.tell(x, values)
@@ -529,7 +529,7 @@ def _validate(run: _Run, best: Candidate) -> dict:
     cols = run.roll(rows, run.work / "validate", vseed, f"[{run.title}] validation:",
                     repeats=1, noise_period=None)
     c = Candidate(dict(best.params))
-    _evaluate(run.spec, run.cfg.weights, cols, n, [c])
+    evaluate(run.spec, run.cfg.weights, cols, n, [c])
     lo, hi = wilson_interval(c.unsafe, c.n)
     return {"n": c.n, "seed": vseed, "unsafe": c.unsafe, "violations": c.violations,
             "falls": c.falls, "lost": c.lost, "rate": c.unsafe / max(c.n, 1), "ci": [lo, hi],
