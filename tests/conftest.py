@@ -47,6 +47,33 @@ def pytest_runtest_makereport(item, call):
                         f"(the fast tier's limit is {FAST_LIMIT_S:g} s a test)")
 
 
+# Parallel runs (pytest-xdist, ``-n auto --dist loadfile`` in pyproject.toml): most of the
+# suite's time is XLA compiling closed loops, one core each, so two test files at a time
+# use a 2-core machine that one leaves half idle. A file runs whole on one worker (its
+# module fixtures are computed once), and the files known to take minutes start first so
+# that no long file starts last (the order only schedules; a file not named here keeps
+# its place after them). From the full suite's --durations on a 2-core CPU.
+LONG_FILES = ("test_precision.py", "test_sweeps_rollouts.py", "test_mjx_closed_loop.py",
+              "test_tune_rollouts.py", "test_cuda_lowering.py", "test_examples.py",
+              "test_closed_loop.py", "test_mjx_batch.py")
+MAX_WORKERS = 4     # each worker may hold a closed-loop compile of a few GB
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: PYTEST_XDIST_AUTO_NUM_WORKERS if set, else one worker per core, at
+    most MAX_WORKERS."""
+    env = os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS")
+    if env:
+        return int(env)
+    return max(1, min(len(os.sched_getaffinity(0)), MAX_WORKERS))
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda it: rank.get(it.path.name, len(LONG_FILES)))   # stable
+
+
 @pytest.fixture(scope="session")
 def ctrl_mj():
     import mujoco

@@ -177,3 +177,32 @@ def test_memory_bytes_writes_nothing_to_the_compilation_cache(monkeypatch, tmp_p
         jax.config.update("jax_compilation_cache_dir", was_dir)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", was_min)
         compilation_cache.reset_cache()
+
+
+def test_run_batch_calls_the_program_memory_bytes_and_export_lower(monkeypatch):
+    """``run_batch`` calls the compiled closed loop with arguments of exactly the types
+    ``memory_bytes`` and ``export`` lower it for (``_arg_shapes``), weak types included:
+    a weakly typed scalar is another program, which made the accelerator benchmark
+    compile every batch twice (memory, then run). Intercepted at the call, so nothing
+    compiles."""
+    from safewbc_jax.batch import rollout as R
+
+    class Called(Exception):
+        pass
+
+    seen = []
+
+    def intercept(pl, decimate, n_records, chunk):
+        def call(*args):
+            seen.extend(jax.typeof(a) for a in jax.tree_util.tree_leaves(args))
+            raise Called
+        return call
+
+    cfg = R.BatchConfig("arms", barrier=False, duration=0.1)
+    monkeypatch.setattr(R, "_compiled", intercept)
+    with pytest.raises(Called):
+        R.run_batch(cfg, R.default_params("arms", 3))
+    want = jax.tree_util.tree_leaves(R._arg_shapes(R.plant(cfg), 3))
+    got = [(a.shape, a.dtype, a.weak_type) for a in seen]
+    assert got == [(s.shape, s.dtype, s.weak_type) for s in want]
+    assert any(s.shape == () and s.dtype == jnp.float64 for s in want)

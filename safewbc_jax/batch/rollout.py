@@ -447,12 +447,20 @@ def _arg_shapes(pl: Plant, batch: int) -> tuple:
     def sds(a):
         return jax.ShapeDtypeStruct(np.shape(a), jnp.asarray(a).dtype)
 
-    f = jnp.float64
     batched = jax.tree_util.tree_map(sds, (default_params(pl.cfg.scenario, batch,
                                                           pl.cfg.safe_sets),
                                            Push.none(batch), np.zeros((batch, pl.nv_sim))))
-    return batched + (jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), f),
-                      jax.ShapeDtypeStruct((), f), jax.ShapeDtypeStruct((), f))
+    return batched + tuple(jax.tree_util.tree_map(sds, _run_scalars(0, 0.0, 0.0, 0.0)))
+
+
+def _run_scalars(n_steps, settle, speed, t_half) -> tuple:
+    """The compiled closed loop's run-time scalars, typed as ``_arg_shapes`` types them:
+    int32 and strong float64. (A Python float through ``jnp.asarray`` is weakly typed,
+    and a weak type is another program: ``memory_bytes``'s compile would then not be the
+    one ``run_batch`` calls, nor ``export``'s the one that runs.)"""
+    f = jnp.float64
+    return (jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle, f), jnp.asarray(speed, f),
+            jnp.asarray(t_half, f))
 
 
 def _checked_batch(batch) -> int:
@@ -598,8 +606,7 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     ch = resolve_chunk(chunk, padded, ByPlatform(CPU_CHUNK)) if ndev == 1 else None
     fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0, ch)
     with jax_qp.blas_threads(1):      # see safewbc_jax/__init__.py
-        final, recs = fn(*args, jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle),
-                         jnp.asarray(cfg.speed), jnp.asarray(t_half))
+        final, recs = fn(*args, *_run_scalars(n_steps, settle, cfg.speed, t_half))
         final = final._replace(dx=None)
         final, recs = jax.tree_util.tree_map(lambda a: np.asarray(a)[:batch], (final, recs))
     return _finish(pl, final), recs
