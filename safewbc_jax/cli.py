@@ -143,6 +143,17 @@ def _cmd_tune(args) -> int:
     return 0
 
 
+def _scenario_arg(value: str) -> str:
+    """argparse type: a scenario's name or a "FILE.py:NAME" reference (loaded, and checked,
+    by the run before anything compiles)."""
+    from safewbc_jax import scenarios, userfile
+
+    if value in scenarios.names() or userfile.is_ref(value):
+        return value
+    raise argparse.ArgumentTypeError(f"{value!r}: choose from {', '.join(sorted(scenarios.names()))}"
+                                     ", or FILE.py:NAME (a Scenario of your own)")
+
+
 def _finite_float(text: str) -> float:
     """argparse type: a finite number (ranges that depend on the scenario are checked by
     ``runner.check_run_options``, still before anything compiles)."""
@@ -209,10 +220,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_model_info)
 
-    from safewbc_jax.scenarios import SCENARIOS
+    from safewbc_jax import scenarios
 
     p = sub.add_parser("run", help="run a scenario in MuJoCo with the PIQP controller")
-    p.add_argument("scenario", choices=sorted(SCENARIOS) + ["push", "walk"])
+    p.add_argument("scenario", type=_scenario_arg, metavar="SCENARIO",
+                   help=f"{', '.join(sorted(scenarios.names()))}, or FILE.py:NAME: a Scenario "
+                   "of your own")
     p.add_argument("--speed", type=_finite_float, default=None, help="walk/push: commanded "
                    "mean forward speed (m/s; default 0.2; the ALIP planner at T = 0.35 s "
                    "reaches -0.857 to 1.143)")

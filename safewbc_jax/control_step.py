@@ -372,6 +372,41 @@ def start_eta_fn(model, scenario, barrier, q):
     return eta
 
 
+class StartCheck:
+    """Theorem 1 (eq. 25) at start states (q, v_i) of ``scenario``, all at one
+    configuration q: the check every driver runs before it compiles or restarts its loop
+    (``deploy.Controller.start`` and ``restart``, ``batch.rollout.run_batch``, the sweeps'
+    ``admissible``). Each barrier's eta(x_0) (``start_eta_fn``) is vmapped over the start
+    velocities and thresholds, and jitted once per barrier where ``jit`` (False: eager,
+    for a single check that would not repay a compile)."""
+
+    def __init__(self, model, scenario, q, jit: bool = True):
+        self.model, self.scenario, self.q = model, scenario, jnp.asarray(q)
+        self._jit = bool(jit)
+        self._eta = {}
+
+    def etas(self, name: str, v, thresholds) -> np.ndarray:
+        """(N, r) eta(x_0) of barrier ``name`` at velocities v (N, nv) with thresholds (N,)."""
+        fn = self._eta.get(name)
+        if fn is None:
+            b = next(b for b in self.scenario.barriers if b.name == name)
+            fn = jax.vmap(start_eta_fn(self.model, self.scenario, b, self.q))
+            fn = self._eta[name] = jax.jit(fn) if self._jit else fn
+        return np.asarray(fn(jnp.asarray(v), jnp.asarray(thresholds)))
+
+    def check(self, params, v, batched: bool = True) -> None:
+        """Raise barriers.PoleError unless every barrier's poles are admissible at each
+        start state. ``batched``: params with a leading axis N, v (N, nv), the error names
+        the rollout; else one robot's params and v (nv,)."""
+        for b in self.scenario.barriers:
+            thr, poles = params.threshold[b.name], params.poles[b.name]
+            if not batched:
+                v_, thr, poles = np.asarray(v)[None], np.asarray(thr)[None], np.asarray(poles)[None]
+            else:
+                v_ = v
+            check_start_poles(b.name, self.etas(b.name, v_, thr), poles, batched)
+
+
 def check_start_poles(name: str, etas, poles, batched: bool) -> None:
     """Theorem 1 (``barriers.check_poles``) for barrier ``name`` at each start state:
     etas and poles (N, r). Raises barriers.PoleError naming the barrier, the pole, its

@@ -28,8 +28,8 @@ import numpy as np
 
 from safewbc_jax import control_step, metrics, paths, robot, scenarios
 from safewbc_jax.packing import FlatTree, Packer
-from safewbc_jax.solvers import policy, reduce
-from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver, solve_lanes
+from safewbc_jax.solvers import host, policy, reduce
+from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
 from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_RELAXED, NOT_ATTEMPTED,
                                         SolveResult, fallback_name, failed)
 from safewbc_jax.solvers.status import SolveStatus
@@ -156,22 +156,17 @@ def check_measurement(m: Measurement, walking: bool, nq: int, nv: int) -> str:
 
 
 def check_barrier_poles(model, scenario, params, q, v, cache: dict | None = None):
-    """Theorem 1 at the start state, before anything compiles: raises barriers.PoleError
-    naming the barrier, the pole and its bound (``control_step.check_start_poles``; a
-    walking barrier is checked where its domain first starts). ``cache``: a dict that
-    keeps each barrier's eta jitted for this q (``Controller.restart``, once per rollout
-    of a sweep: eager, the check costs ~0.5 s)."""
-    for b in scenario.barriers:
-        if cache is None:
-            eta_fn = control_step.start_eta_fn(model, scenario, b, q)
-        else:
-            key = (b.name, np.asarray(q).tobytes())
-            if key not in cache:
-                cache[key] = jax.jit(control_step.start_eta_fn(model, scenario, b, q))
-            eta_fn = cache[key]
-        eta = eta_fn(v, params.threshold[b.name])
-        control_step.check_start_poles(b.name, np.asarray(eta)[None],
-                                       np.asarray(params.poles[b.name])[None], batched=False)
+    """Theorem 1 at the start state (q, v), before anything compiles: raises
+    barriers.PoleError naming the barrier, the pole and its bound
+    (``control_step.StartCheck``; a walking barrier is checked where its domain first
+    starts). ``cache``: a dict that keeps the jitted check of each start q
+    (``Controller.restart``, once per rollout of a sweep; without it the check runs
+    eagerly, ~0.5 s, and compiles nothing)."""
+    key = np.asarray(q).tobytes()
+    if cache is not None and key not in cache:
+        cache[key] = control_step.StartCheck(model, scenario, q)
+    check = control_step.StartCheck(model, scenario, q, jit=False) if cache is None else cache[key]
+    check.check(params, v, batched=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,7 +198,8 @@ class Controller:
     scenario's default when None); ``speed``: walking's commanded mean speed (m/s);
     ``duration``: the planned s of motion, where known (walking's ``avg_forward_speed`` is
     measured over its second half; None: not measured); ``keep_metrics``: False leaves out
-    ``conclude`` altogether (no metrics, no ``record``: the command alone).
+    ``conclude`` altogether (no metrics, no ``record``: the command alone); ``solver``:
+    "piqp" (a ``PiqpSolver``) or any object of the ``solvers.host`` protocol.
 
     Each ``step`` is ``control_step.prepare`` (jitted, with the exact elimination of the
     QP's equality rows, ``solvers.reduce``), PIQP on the reduced QP (``solver``), and the
@@ -226,11 +222,10 @@ class Controller:
         self.walking = sc.gait is not None
         if self.walking:
             speed = sc.gait.check_speed(speed)
-        if isinstance(solver, str) and solver != "piqp":
-            raise ValueError(f"solver {solver!r}: 'piqp' or a PiqpSolver-like object (the JAX "
-                             "solver runs batched, batch.rollout)")
-        self.solver = (PiqpSolver(nominal_settings=REDUCED_QP_SETTINGS) if solver == "piqp"
-                       else solver)
+        if isinstance(solver, str) and solver == "piqp":
+            solver = PiqpSolver(nominal_settings=REDUCED_QP_SETTINGS)
+        host.check(solver)          # the protocol of solvers.host
+        self.solver = solver
         self.scenario = dataclasses.replace(sc, settle=settle)
         self.params = sc.default_params() if params is None else params
         self.control_dt, self.barrier, self.speed = float(control_dt), bool(barrier), speed
@@ -245,7 +240,7 @@ class Controller:
         self.run_values = control_step.RunValues(jnp.asarray(settle), jnp.asarray(float(speed)),
                                                  jnp.asarray(t_half))
         self.start_data = self.compile_s = self._start_qv = None
-        self._eta_cache = {}         # restart's Theorem-1 check, jitted (shared by lanes)
+        self._start_checks = {}      # restart's Theorem-1 checks, jitted (shared by lanes)
         self._prepare = self._conclude = None
 
     def start(self, q, v, warm_up: bool = True) -> float:
@@ -290,7 +285,7 @@ class Controller:
         params = self.params if params is None else params
         if self.barrier:
             check_barrier_poles(self.model, self.scenario, params, jnp.asarray(q), jnp.asarray(v),
-                                self._eta_cache)
+                                self._start_checks)
         if not np.array_equal(q, self._start_qv[0]):
             self.start_data = control_step.start_data(self.model, self.scenario, jnp.asarray(q))
         self.params = params
@@ -300,18 +295,14 @@ class Controller:
         self.reset()
 
     def lane(self) -> "Controller":
-        """Another controller of the same scenario and compiled step (no compile), with
-        its own PIQP solvers, counters and state, as ``start`` leaves them: the lanes of
-        ``sim.lockstep``, each ``restart``-ed with its own params and start state."""
+        """Another controller of this compiled step (no compile) with its own solver
+        (``solvers.host.lane``), counters and state: a lane of ``sim.lockstep``."""
         import copy
 
         if self._prepare is None:
             raise RuntimeError("Controller.lane before start(q, v)")
         other = copy.copy(self)
-        # a PiqpSolver copy shares nothing once ``reset`` (in ``other.reset``) has given it
-        # fresh PIQP backends
-        other.solver = (copy.copy(self.solver) if isinstance(self.solver, PiqpSolver)
-                        else copy.deepcopy(self.solver))
+        other.solver = host.lane(self.solver)
         other.reset()
         return other
 
@@ -371,7 +362,7 @@ class Controller:
             state, tally = control_step.init_state(self.ctx, *self._start_qv, np, np.float64)
             self._state = jnp.asarray(self._flat["state"].pack(state))
             self._tally = jnp.asarray(self._flat["tally"].pack(tally))
-            getattr(self.solver, "reset", lambda: None)()
+            host.reset(self.solver)
 
     def last_qp(self):
         """The full QP (``qp_types.QP``, numpy) of the last good step."""
@@ -427,7 +418,7 @@ class Controller:
         if self._prepare is None:
             raise RuntimeError("Controller.kernels before start(q, v)")
         q, v = self._start_qv
-        meas = self._well_formed(Measurement(q, v, 0.0, np.zeros(2)))
+        meas = self.flat_measurement(Measurement(q, v, 0.0, np.zeros(2)))
         return kernels.count(self._prepare, self._fixed, self._state, meas)
 
     def prepare_flat(self, state: control_step.ControllerState, meas: Measurement):
@@ -439,7 +430,7 @@ class Controller:
         if self._prepare is None:
             raise RuntimeError("Controller.prepare_flat before start(q, v)")
         flat_state = jnp.asarray(self._flat["state"].pack(state))
-        new, _, packed = self._prepare(self._fixed, flat_state, self._well_formed(meas))
+        new, _, packed = self._prepare(self._fixed, flat_state, self.flat_measurement(meas))
         return (self._flat["state"].unpack(np.asarray(new)), *self._unpack_qp(packed)[:3])
 
     def metrics(self) -> dict:
@@ -474,7 +465,7 @@ class Controller:
         if reason != "ok":
             self.bad_measurements += 1
             self._record = None
-        return self._well_formed(meas), reason
+        return self.flat_measurement(meas), reason
 
     def _finish(self, prep, packed, reason: str, t, t_in: float, t_step: float) -> Command:
         """The host side of a step after the jitted prepare (its ``prep`` and packed QP):
@@ -492,8 +483,7 @@ class Controller:
         self._last_qp = qpm
         t1 = time.perf_counter()
         # a SolveResult of the reduced QP; PIQP's acceptance from the step's own checks
-        res = (self.solver.solve(red, checks=checks) if isinstance(self.solver, PiqpSolver)
-               else self.solver.solve(red))
+        res = self.solver.solve(red, checks=checks)
         x = reduce.expand(res.x, rmap)               # all NaN where it failed
         usable = res.fallback != FALLBACK_FAILED and bool(np.all(np.isfinite(x)))
         if usable:
@@ -524,7 +514,7 @@ class Controller:
         reasons, "ok" or why)."""
         lead = lanes[0]
         try:
-            flat = np.stack([lead._well_formed(m) for m in meas])
+            flat = np.stack([lead.flat_measurement(m) for m in meas])
         except (TypeError, ValueError):      # some measurement cannot be a flat vector
             flat = None
         if flat is None or flat.dtype != np.float64:
@@ -546,19 +536,20 @@ class Controller:
     @staticmethod
     def finish_lanes(lanes: list, prep, packed, reasons: list, ts, t_in: float):
         """``_finish`` for several lanes of one compiled step (``lane``; ``sim.lockstep``),
-        from the rows of a vmapped prepare (``prep``, ``packed``: leading axis L): PIQP per
-        lane with the acceptance of all at once (``piqp_path.solve_lanes``), then the
-        expansion X = x0 + N u, the usable test, the held-torque rule and the motor map of
-        ``_finish`` for all lanes at once, the same operations over the leading axis
-        (``tests/test_lockstep.py`` holds the two to each other); a lane whose measurement
-        was refused, or that has another solver than a PiqpSolver, runs ``_finish``.
+        from the rows of a vmapped prepare (``prep``, ``packed``: leading axis L): the
+        solver class's ``solve_lanes`` (``solvers.host``; PIQP's: per lane, accepted all at
+        once), then X = x0 + N u, the usable test, the held-torque rule and the motor map of
+        ``_finish`` over the leading axis (``tests/test_lockstep.py`` holds the two equal);
+        a lane whose measurement was refused, or whose solver is not of the first lane's
+        class or has no ``solve_lanes``, runs ``_finish``.
         ``ts``: the measurements' times. Returns (the Commands, the solve results as the
         conclude's flat vectors (L, .)); no conclude is left pending (the caller runs it,
         vmapped), and ``last_qp`` is not kept."""
         L, lead = len(lanes), lanes[0]
         sols = np.tile(lead._no_sol, (L, 1))
         cmds = [None] * L
-        batched = np.array([r == "ok" and isinstance(lane.solver, PiqpSolver)
+        kind = type(lead.solver)
+        batched = np.array([r == "ok" and type(lane.solver) is kind and host.solves_lanes(lane.solver)
                             for r, lane in zip(reasons, lanes)])
         for i in np.flatnonzero(~batched).tolist():
             cmds[i] = lanes[i]._finish(prep[i], packed[i], reasons[i], ts[i], t_in, t_in)
@@ -570,7 +561,7 @@ class Controller:
             return cmds, sols
         t1 = time.perf_counter()
         qpm, red, rmap, checks = lead._unpack_qp(packed if idx.size == L else packed[idx])
-        res = solve_lanes([lanes[i].solver for i in idx], red, checks)
+        res = kind.solve_lanes([lanes[i].solver for i in idx], red, checks)
         x = reduce.expand(res.x, rmap)
         usable = (res.fallback != FALLBACK_FAILED) & np.all(np.isfinite(x), axis=1)
         eq = np.max(np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b), axis=1)
@@ -602,12 +593,45 @@ class Controller:
                               fallback_name(fb), "ok", t_out)
         return cmds, sols
 
+    # -- the lane API (sim.lockstep: lanes of one step, vmapped), with admit/finish_lanes
+    @property
+    def start_state(self) -> tuple:
+        """(q, v) of the last ``start`` or ``restart``."""
+        return self._start_qv
+
+    def step_functions(self) -> tuple:
+        """(prepare, conclude) unjitted, on flat vectors, to vmap over lanes: prepare(fixed,
+        state, meas) -> (state, prepared, packed QP); conclude(fixed, tally, prepared,
+        solve) -> (tally, packed record). After ``start``."""
+        return self._prepare_fn, self._conclude_fn
+
+    def flat_arrays(self) -> tuple:
+        """(fixed, state, tally): this controller's flat vectors (numpy)."""
+        return (np.asarray(self._fixed), np.asarray(self._state), np.asarray(self._tally))
+
+    def set_flat_arrays(self, state, tally) -> None:
+        """Take the state and tally a vmapped step computed for this lane."""
+        self._state, self._tally = np.array(state), np.array(tally)
+
+    def no_solution(self) -> np.ndarray:
+        """The flat solve record of a step with no solution."""
+        return self._no_sol
+
+    def prepared_layout(self) -> tuple[int, int]:
+        """(size of prepare's flat Prepared vector, where tau sits in it)."""
+        flat = self._flat["prep"]
+        return flat.size, int(flat.unpack(np.arange(flat.size, dtype=float)).tau)
+
+    def unpack_record(self, packed) -> tuple:
+        """conclude's packed record -> (StepRecord, q, v, domain), numpy."""
+        return self._unpack_out(packed)
+
     def _flat_sol(self, res) -> np.ndarray:
         """A host SolveResult as the jitted conclude's flat vector (``FlatTree`` layout:
         x, then each scalar field in order), without a per-field conversion."""
         return np.concatenate([res.x, np.array(res[1:], dtype=np.float64)])
 
-    def _well_formed(self, meas: Measurement):
+    def flat_measurement(self, meas: Measurement):
         """The measurement as the step's flat vector (q, v, sole forces, t), or None where
         it cannot be one (shapes, types; sole forces missing while walking)."""
         try:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from safewbc_jax import plots, scenarios
+from safewbc_jax import plots, scenarios, userfile
 from safewbc_jax.metrics import summarize
 from safewbc_jax.params import apply_overrides, load_overrides
 from safewbc_jax.progress import Progress
@@ -131,7 +131,8 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     # (get_scenario appends the user's safe sets after the scenario's own)
     added = "".join(f"+{s.name}" for s in scenario.safe_sets[len(scenario.safe_sets)
                                                              - len(safe_sets):])
-    out_dir = Path(out) if out else Path("runs") / (name + added + ("" if barrier else "_no_barrier"))
+    base = scenario.name if userfile.is_ref(name) else name
+    out_dir = Path(out) if out else Path("runs") / (base + added + ("" if barrier else "_no_barrier"))
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")

@@ -32,18 +32,16 @@ CLI's ``--safe-set`` and a sweep spec's ``sweep.safe_sets`` go through it.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import importlib.util
 import inspect
 import math
-import re
-import sys
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+from safewbc_jax import userfile
+
+_NAME_RE = userfile.NAME_RE
 
 
 class SafeSetError(ValueError):
@@ -138,48 +136,17 @@ class SafeSet:
 
 def split_ref(ref: str) -> tuple[Path, str]:
     """"FILE.py:NAME" -> (Path, NAME), or SafeSetError."""
-    if not isinstance(ref, str) or ":" not in ref:
-        raise SafeSetError(f"safe set {ref!r}: expected FILE.py:NAME (a Python file and the "
-                           "name of a SafeSet in it)")
-    path, name = ref.rsplit(":", 1)
-    if not path.endswith(".py") or not _NAME_RE.match(name):
-        raise SafeSetError(f"safe set {ref!r}: expected FILE.py:NAME (a Python file and the "
-                           "name of a SafeSet in it)")
-    return Path(path), name
+    return userfile.split(ref, "safe set", SafeSetError)
 
 
 def file_digest(ref: str) -> str:
     """sha256 of the file a reference names (sweeps record it: a resumed table must come
     from the same barrier)."""
-    path, _ = split_ref(ref)
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    return userfile.digest(ref, "safe set", SafeSetError)
 
 
 def load(ref: str) -> SafeSet:
-    """The SafeSet ``NAME`` of the Python file ``FILE.py`` (``ref`` = "FILE.py:NAME");
-    ``NAME`` may also be a function of no arguments returning one. Raises SafeSetError
-    naming the file and what is missing."""
-    path, name = split_ref(ref)
-    if not path.is_file():
-        raise SafeSetError(f"safe set {ref!r}: file {path} does not exist")
-    key = "safewbc_user_" + hashlib.sha256(str(path.resolve()).encode()).hexdigest()[:16]
-    spec = importlib.util.spec_from_file_location(key, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[key] = module
-    try:
-        spec.loader.exec_module(module)
-    except Exception as e:  # noqa: BLE001 - the user's file: report, do not crash later
-        sys.modules.pop(key, None)
-        raise SafeSetError(f"safe set {ref!r}: importing {path} failed: "
-                           f"{type(e).__name__}: {e}") from e
-    if not hasattr(module, name):
-        found = sorted(k for k, v in vars(module).items() if isinstance(v, SafeSet))
-        raise SafeSetError(f"safe set {ref!r}: {path} has no {name!r}; SafeSets there: "
-                           f"{', '.join(found) or 'none'}")
-    obj = getattr(module, name)
-    if callable(obj) and not isinstance(obj, SafeSet):
-        obj = obj()
-    if not isinstance(obj, SafeSet):
-        raise SafeSetError(f"safe set {ref!r}: {name} is a {type(obj).__name__}, not a "
-                           "safewbc_jax.safesets.SafeSet")
-    return obj
+    """The SafeSet ``NAME`` of the Python file ``FILE.py`` (``ref`` = "FILE.py:NAME";
+    ``userfile.load``); ``NAME`` may also be a function of no arguments returning one.
+    Raises SafeSetError naming the file and what is missing."""
+    return userfile.load(ref, SafeSet, "safe set", SafeSetError)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from safewbc_jax import outputs, references, walking
+from safewbc_jax import outputs, references, userfile, walking
 from safewbc_jax.safesets import SafeSet, SafeSetError, load
 from safewbc_jax.scenario import Scenario, start_state  # noqa: F401  (re-exported)
 from safewbc_jax.tasks import Task
@@ -93,27 +93,38 @@ SCENARIOS = {"squat": squat(), "bow": bow(), "arms": arms()}
 WALKING = ("walk", "push")
 
 
-def get_scenario(name: str, barrier: bool = True, safe_sets=()) -> Scenario:
-    """A scenario by name. ``barrier`` only matters for the walking ones, whose swing-foot
-    barrier (and the user's safe sets) are monitored instead of enforced when False (the
-    double-support ones keep their rows and zero them, ``Context.barrier_on``).
-    ``safe_sets``: SafeSets or "FILE.py:NAME" references (``safesets.load``) to add."""
-    if name in WALKING:
+def names() -> tuple:
+    """The scenarios that have a name: the paper's."""
+    return tuple(SCENARIOS) + WALKING
+
+
+def get_scenario(name, barrier: bool = True, safe_sets=()) -> Scenario:
+    """A scenario by name, a user's Scenario from a "FILE.py:NAME" reference
+    (``userfile.load``), or a Scenario itself. ``barrier`` only matters for a scenario
+    with a gait (walking), whose barriers (and the user's safe sets) are monitored
+    instead of enforced when False (the double-support ones keep their rows and zero
+    them, ``Context.barrier_on``). ``safe_sets``: SafeSets or "FILE.py:NAME" references
+    (``safesets.load``) to add."""
+    if isinstance(name, Scenario):
+        sc = name
+    elif name in WALKING:
         sc = walking.make_scenario(name, 20.0 if name == "walk" else 8.0)
     elif name in SCENARIOS:
         sc = SCENARIOS[name]
+    elif userfile.is_ref(name):
+        sc = userfile.load(name, Scenario, "scenario")
     else:
-        raise ValueError(f"unknown scenario {name!r}; available: "
-                         f"{', '.join(list(SCENARIOS) + list(WALKING))}")
+        raise ValueError(f"unknown scenario {name!r}; available: {', '.join(names())}, or "
+                         "a Scenario of your own as FILE.py:NAME")
     if isinstance(safe_sets, (str, SafeSet)):
         safe_sets = (safe_sets,)
     extra = tuple(load(s) if isinstance(s, str) else s for s in safe_sets)
     taken = {s.name for s in sc.safe_sets}
     for s in extra:
         if s.name in taken:
-            raise SafeSetError(f"safe set {s.name!r}: scenario {name!r} already has a safe set "
-                               f"of that name ({', '.join(sorted(taken))})")
+            raise SafeSetError(f"safe set {s.name!r}: scenario {sc.name!r} already has a safe "
+                               f"set of that name ({', '.join(sorted(taken))})")
     sc = sc.with_safe_sets(*extra)
-    if name in WALKING and not barrier:
+    if sc.gait is not None and not barrier:
         sc = sc.without_barriers()
     return sc

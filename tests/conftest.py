@@ -21,13 +21,32 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 5.0)
 # tests marked slow (those that compile an MJX loop, run a closed loop or start a
 # subprocess run). An unmarked test whose setup and call together take longer than this
 # fails and names itself, so the fast tier stays fast. Fixtures are session-scoped and
-# shared, so the first test to use one pays its setup: mark that test slow too.
+# shared, so the first test to use one pays its setup: mark that test slow too. With
+# several xdist workers sharing the cores, a test's wall time also counts the time it
+# waited for the others' CPU; there it is measured by the CPU time it used (its process's
+# threads and its finished subprocesses) where that is less than its wall time.
 try:
     FAST_LIMIT_S = float(os.environ.get("SAFEWBC_FAST_LIMIT_S", "20"))
 except ValueError:
     raise pytest.UsageError("SAFEWBC_FAST_LIMIT_S must be a number of seconds, got "
                             f"{os.environ['SAFEWBC_FAST_LIMIT_S']!r}") from None
 _SETUP_S = pytest.StashKey[float]()
+_CPU0 = pytest.StashKey[float]()
+
+
+def _cpu_s() -> float:
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def _shared_cores() -> bool:
+    return int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    item.stash[_CPU0] = _cpu_s()
+    yield
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -40,22 +59,31 @@ def pytest_runtest_makereport(item, call):
     if rep.when != "call" or not rep.passed or item.get_closest_marker("slow"):
         return
     took = item.stash.get(_SETUP_S, 0.0) + call.duration
+    what = "setup and call"
+    if _shared_cores() and _CPU0 in item.stash:
+        cpu = _cpu_s() - item.stash[_CPU0]
+        if cpu < took:
+            took, what = cpu, "CPU time of setup and call, the cores shared with other workers"
     if took > FAST_LIMIT_S:
         rep.outcome = "failed"
-        rep.longrepr = (f"{item.nodeid} took {took:.1f} s (setup and call) without the "
+        rep.longrepr = (f"{item.nodeid} took {took:.1f} s ({what}) without the "
                         f"'slow' marker: mark it @pytest.mark.slow, or make it faster "
                         f"(the fast tier's limit is {FAST_LIMIT_S:g} s a test)")
 
 
-# Parallel runs (pytest-xdist, ``-n auto --dist loadfile`` in pyproject.toml): most of the
+# Parallel runs (pytest-xdist, ``-n auto --dist loadgroup`` in pyproject.toml): most of the
 # suite's time is XLA compiling closed loops, one core each, so two test files at a time
-# use a 2-core machine that one leaves half idle. A file runs whole on one worker (its
-# module fixtures are computed once), and the files known to take minutes start first so
-# that no long file starts last (the order only schedules; a file not named here keeps
-# its place after them). From the full suite's --durations on a 2-core CPU.
-LONG_FILES = ("test_precision.py", "test_sweeps_rollouts.py", "test_mjx_closed_loop.py",
-              "test_tune_rollouts.py", "test_cuda_lowering.py", "test_examples.py",
-              "test_closed_loop.py", "test_mjx_batch.py")
+# use a 2-core machine that one leaves half idle. Each file is one xdist group, run whole
+# on one worker (its module fixtures are computed once); files that share session
+# fixtures or compiled programs (through the persistent cache, which helps only when the
+# second runs after the first) are one group together. The long groups start first, so
+# that none starts last (the order only schedules). From the full suite's --durations on
+# a 2-core CPU.
+GROUPS = {"test_sweeps_rollouts.py": "sweep_engines", "test_tune_rollouts.py": "sweep_engines",
+          "test_mjx_closed_loop.py": "deployment_runs", "test_closed_loop.py": "deployment_runs",
+          "test_walking.py": "deployment_runs"}
+LONG_FIRST = ("test_precision.py", "sweep_engines", "deployment_runs", "test_user_scenario.py",
+              "test_cuda_lowering.py", "test_examples.py", "test_mjx_batch.py")
 MAX_WORKERS = 4     # each worker may hold a closed-loop compile of a few GB
 
 
@@ -69,9 +97,13 @@ def pytest_xdist_auto_num_workers(config):
     return max(1, min(len(os.sched_getaffinity(0)), MAX_WORKERS))
 
 
+@pytest.hookimpl(tryfirst=True)      # before xdist reads the groups
 def pytest_collection_modifyitems(config, items):
-    rank = {name: i for i, name in enumerate(LONG_FILES)}
-    items.sort(key=lambda it: rank.get(it.path.name, len(LONG_FILES)))   # stable
+    for it in items:
+        it.add_marker(pytest.mark.xdist_group(GROUPS.get(it.path.name, it.path.name)))
+    rank = {name: i for i, name in enumerate(LONG_FIRST)}
+    items.sort(key=lambda it: rank.get(GROUPS.get(it.path.name, it.path.name),
+                                       len(LONG_FIRST)))   # stable
 
 
 @pytest.fixture(scope="session")

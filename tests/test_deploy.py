@@ -95,6 +95,8 @@ def test_controller_refuses_bad_options_and_start_states(stand):
         Controller("walk", speed=2.0)
     with pytest.raises(ValueError, match="solver"):
         Controller("squat", solver="osqp")
+    with pytest.raises(ValueError, match=r"solve\(qp, checks=None\)"):
+        Controller("squat", solver=object())       # no solve(): not a solvers.host solver
     ctl = Controller("squat")
     with pytest.raises(RuntimeError, match="start"):
         ctl.step(Measurement(*stand, 0.0))
@@ -318,7 +320,7 @@ def test_control_step_refuses_in_the_graph(squat, stand, case):
                                                eq_residual=0.0))
         tally_flat, packed = ctl._conclude(ctl._fixed, ctl._tally, prep, sol)
         tally = F["tally"].unpack(np.asarray(tally_flat))
-        rec = ctl._unpack_out(packed)[0]
+        rec = ctl.unpack_record(packed)[0]
         np.testing.assert_array_equal(rec.u, good.u)
         np.testing.assert_array_equal(tally.last_u, good.u)
         motor = ctl.motors.to_motor(rec.u)

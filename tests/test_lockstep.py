@@ -112,9 +112,9 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     meas = sim.sense(0.0)[0]
     rows = lambda a: np.stack([np.asarray(a)] * 3)  # noqa: E731
     # the lockstep's one call a step: this step's prepare, the last step's conclude (none)
-    _, prep, packed, *_ = lock._vstep(rows(ctl._fixed), rows(ctl._state),
-                                      rows(ctl._well_formed(meas)), rows(ctl._tally),
-                                      *lock._no_previous_step(3))
+    fixed, state, tally = ctl.flat_arrays()
+    _, prep, packed, *_ = lock._vstep(rows(fixed), rows(state), rows(ctl.flat_measurement(meas)),
+                                      rows(tally), *lock._no_previous_step(3))
     prep, packed = np.array(prep), np.array(packed)        # writable copies
     _, red, _, checks = ctl._unpack_qp(packed)              # views into packed
     soft, hard = np.flatnonzero(red.soft[0] > 0), np.flatnonzero(red.soft[0] == 0)
@@ -143,3 +143,28 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
         np.testing.assert_array_equal(b._last_u, lane._last_u)
         assert b._pending is None
     np.testing.assert_array_equal(cmds[2].u, np.full(ctl.model.nu, 0.5))
+
+    # a user's solver of the solvers.host protocol with ``solve`` alone (no solve_lanes,
+    # lane or reset): its lanes take ``_finish`` one by one, with PIQP's outcome
+    from safewbc_jax.solvers import host
+    from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
+
+    class OnlySolve:
+        def __init__(self):
+            self.inner, self.calls = PiqpSolver(nominal_settings=REDUCED_QP_SETTINGS), 0
+
+        def solve(self, qp, checks=None):
+            self.calls += 1
+            return self.inner.solve(qp, checks=checks)
+
+    assert isinstance(OnlySolve(), host.HostSolver) and not host.solves_lanes(OnlySolve())
+    own = [ctl.lane() for _ in pick]
+    for lane in own:
+        lane.solver = OnlySolve()
+        lane._last_u = np.full(ctl.model.nu, 0.5)
+    cmds2, _ = Controller.finish_lanes(own, prep, packed, reasons, [0.0] * 4, 0.0)
+    assert [lane.solver.calls for lane in own] == [1, 1, 1, 0]
+    for got, want in zip(cmds2, cmds):
+        assert (got.solve_status, got.fallback, got.measurement) == \
+            (want.solve_status, want.fallback, want.measurement)
+        np.testing.assert_array_equal(got.u, want.u)

@@ -217,9 +217,11 @@ f_min = [20.0]
 def test_push_and_perturbations(tmp_path):
     s = spec_from(tmp_path, GOOD + '\n[push]\ndirection = 90.0\n')
     vals = s.settings_array()
-    push = inputs.push_arrays(s, vals)
-    np.testing.assert_allclose(push["fx"], 0.0, atol=1e-12)
-    np.testing.assert_allclose(push["fy"], vals[:, 2])
+    push, cols = inputs.pushes(s, vals)
+    np.testing.assert_allclose(cols["fx"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(cols["fy"], vals[:, 2])
+    np.testing.assert_array_equal(push.force, np.stack([cols["fx"], cols["fy"], cols["fz"]], 1))
+    assert push.at.shape == push.duration.shape == (len(vals),)
     import mujoco
 
     from safewbc_jax import paths

@@ -9,6 +9,7 @@ CONFTEST = Path(__file__).with_name("conftest.py")
 
 def test_unmarked_slow_test_fails_and_names_itself(pytester, monkeypatch):
     monkeypatch.setenv("SAFEWBC_FAST_LIMIT_S", "0.5")
+    monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)   # one process: wall time
     pytester.makeconftest(CONFTEST.read_text())
     pytester.makeini("[pytest]\nmarkers =\n    slow: slow\n")
     pytester.makepyfile(test_guarded="""
@@ -38,3 +39,28 @@ def test_sleeps_marked():
     for name in ("test_sleeps_unmarked", "test_setup_and_call_add_up"):
         assert f"test_guarded.py::{name} took" in out, out
     assert "without the 'slow' marker" in out
+
+
+def test_with_shared_cores_the_guard_counts_cpu_time(pytester, monkeypatch):
+    """As an xdist worker beside others (PYTEST_XDIST_WORKER_COUNT > 1), a test is held to
+    the CPU time it used where that is less than its wall time: waiting (here sleeping,
+    there for the other workers' CPU) does not count, computing does."""
+    monkeypatch.setenv("SAFEWBC_FAST_LIMIT_S", "0.5")
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
+    pytester.makeconftest(CONFTEST.read_text())
+    pytester.makeini("[pytest]\nmarkers =\n    slow: slow\n")
+    pytester.makepyfile(test_shared="""
+import time
+
+def test_waits():
+    time.sleep(0.8)
+
+def test_computes():
+    t0 = time.process_time()
+    while time.process_time() - t0 < 0.8:
+        pass
+""")
+    res = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-p", "no:xdist")
+    res.assert_outcomes(passed=1, failed=1)
+    out = res.stdout.str()
+    assert "test_shared.py::test_computes took" in out and "CPU time" in out, out

@@ -60,7 +60,7 @@ class Analytic:
         n = len(g)
         return {"tracking_rms.arms": (np.log(g / 2.0)) ** 2 + np.log(w / 0.5) ** 2
                 + 0.01 * np.linalg.norm(dv, axis=1),
-                "torque_ratio_max": 0.1 * g, "fell": g > 3.0 + push["fx"] / 100.0,
+                "torque_ratio_max": 0.1 * g, "fell": g > 3.0 + push.force[:, 0] / 100.0,
                 "tracking_rms.com": np.zeros(n)}
 
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -52,7 +53,7 @@ from safewbc_jax.mjx_import import import_mjx
 from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
-from safewbc_jax import safesets
+from safewbc_jax import safesets, userfile
 from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario
 from safewbc_jax.sim.mujoco_loop import load_at_stand
 from safewbc_jax.solvers import jax_qp
@@ -130,10 +131,10 @@ def _schedule(scenario, cfg: BatchConfig) -> tuple[int, float]:
 
 
 def _check_config(cfg: BatchConfig) -> None:
-    if cfg.scenario not in BATCHED_SCENARIOS:
+    if cfg.scenario not in BATCHED_SCENARIOS and not userfile.is_ref(cfg.scenario):
         known = ", ".join(BATCHED_SCENARIOS)
         raise BatchError(f"scenario {cfg.scenario!r} is not available in the batched path "
-                         f"(available: {known})")
+                         f"(available: {known}, or a Scenario of your own as FILE.py:NAME)")
     if not np.isfinite(cfg.speed):
         raise BatchError(f"BatchConfig.speed = {cfg.speed!r}: must be a finite number")
     if int(cfg.decimate) != cfg.decimate or cfg.decimate < 0:
@@ -166,12 +167,21 @@ def _contact_rows(mjx, ms) -> np.ndarray:
 def plant(cfg: BatchConfig) -> Plant:
     """The host-side constants of a config (validated first)."""
     _check_config(cfg)
-    _schedule(get_scenario(cfg.scenario, cfg.barrier, cfg.safe_sets), cfg)  # before the plant
+    try:
+        sc = get_scenario(cfg.scenario, cfg.barrier, cfg.safe_sets)
+    except ValueError as e:          # a user's file: SafeSetError, or the scenario's
+        raise BatchError(str(e)) from None
+    _schedule(sc, cfg)               # before the plant
     # the cache key names each user's file by its resolved path and content: an edited
     # file gets a new plant, and "a.py:X" and "./a.py:X" share one
     refs = tuple(f"{p.resolve()}:{n}" for p, n in map(safesets.split_ref, cfg.safe_sets))
-    return _plant(cfg.scenario, cfg.barrier, float(cfg.control_dt), refs,
-                  tuple(safesets.file_digest(r) for r in refs), cfg.precision)
+    files = refs
+    scenario = cfg.scenario
+    if userfile.is_ref(scenario):
+        scenario = userfile.absolute(scenario, Path.cwd(), "scenario")
+        files = (scenario,) + refs
+    return _plant(scenario, cfg.barrier, float(cfg.control_dt), refs,
+                  tuple(userfile.digest(r) for r in files), cfg.precision)
 
 
 @functools.lru_cache(maxsize=8)
@@ -262,27 +272,27 @@ def _check_inputs(pl: Plant, params, push: Push, perturb_v) -> int:
 
 
 @functools.lru_cache(maxsize=16)
-def _start_eta(pl: Plant, name: str):
-    """jit(vmap): (v0, threshold) -> eta(x0) of barrier ``name`` at the stand pose
-    (``control_step.start_eta_fn``)."""
-    b = next(b for b in pl.scenario.barriers if b.name == name)
-    return jax.jit(jax.vmap(control_step.start_eta_fn(pl.model, pl.scenario, b, jnp.asarray(pl.q0))))
+@functools.lru_cache(maxsize=16)
+def _start_check(pl: Plant) -> control_step.StartCheck:
+    """Theorem 1 at the stand pose of ``pl`` (``control_step.StartCheck``, jitted)."""
+    return control_step.StartCheck(pl.model, pl.scenario, pl.q0)
+
+
+def _start_velocities(pl: Plant, perturb_v) -> np.ndarray:
+    """The controller's start velocities (N, nv) of simulator perturbations (N, nv_sim)."""
+    return np.asarray(perturb_v)[:, pl.qvel_idx] + pl.v0
 
 
 def start_etas(pl: Plant, name: str, perturb_v, thresholds) -> np.ndarray:
     """(N, r) eta(x_0) of barrier ``name`` at N start states: the stand pose with the
     simulator velocity perturbations ``perturb_v`` (N, nv_sim) and thresholds (N,)."""
-    v0 = np.asarray(perturb_v)[:, pl.qvel_idx] + pl.v0
-    return np.asarray(_start_eta(pl, name)(jnp.asarray(v0), jnp.asarray(thresholds)))
+    return _start_check(pl).etas(name, _start_velocities(pl, perturb_v), thresholds)
 
 
 def check_batch_poles(pl: Plant, params, perturb_v) -> None:
     """Theorem 1 for every rollout at its own start state (velocity perturbation and
     threshold included), before anything long compiles: PoleError names the rollout."""
-    for b in pl.scenario.barriers:
-        control_step.check_start_poles(b.name, start_etas(pl, b.name, perturb_v,
-                                                          params.threshold[b.name]),
-                                       params.poles[b.name], batched=True)
+    _start_check(pl).check(params, _start_velocities(pl, perturb_v), batched=True)
 
 
 class Run(NamedTuple):

@@ -56,7 +56,7 @@ class Lockstep:
         self.leader, self.sim = leader, sim
         self.lanes = [leader.lane() for _ in range(self.width)]
         self.sims = [sim.sibling() for _ in range(self.width)]
-        prepare, conclude = leader._prepare_fn, leader._conclude_fn
+        prepare, conclude = leader.step_functions()
 
         def step(fixed, state, flat, tally, prev_prep, prev_sol):
             # one call a control step: the last step's conclude and this step's prepare
@@ -66,8 +66,7 @@ class Lockstep:
         self._vstep = jax.jit(jax.vmap(step))
         # where tau sits in the flat Prepared vector: the push's clock, read from prepare's
         # output before that step's conclude has run (StepRecord.tau is Prepared.tau)
-        flat_prep = leader._flat["prep"]
-        self._tau_at = int(flat_prep.unpack(np.arange(flat_prep.size, dtype=float)).tau)
+        self._prep_size, self._tau_at = leader.prepared_layout()
         self.compile_s = None
 
     def warm_up(self) -> float:
@@ -80,15 +79,15 @@ class Lockstep:
     def _no_previous_step(self, rows: int):
         """The conclude inputs of the one call a step for the step before step 0, where
         there is none (its results are not used): (prepared rows, solve records)."""
-        return (np.zeros((rows, self.leader._flat["prep"].size)),
-                np.tile(self.leader._no_sol, (rows, 1)))
+        return (np.zeros((rows, self._prep_size)),
+                np.tile(self.leader.no_solution(), (rows, 1)))
 
     def _concluded(self, pending, tally, plant, new_tally, packed_out, sole0):
         """The tally after a step's conclude (for the lanes it ran on) and the plant
         metrics of that step's physics, with the step's record from the conclude."""
         concluded, stepped, soles, loop_res, legs = pending
         tally = np.where(concluded[:, None], np.asarray(new_tally), tally)
-        rec = self.leader._unpack_out(np.asarray(packed_out))[0]
+        rec = self.leader.unpack_record(np.asarray(packed_out))[0]
         return tally, metrics.plant_accumulate(plant, stepped, rec, soles, sole0, loop_res, legs)
 
     def run(self, tasks: list, n_steps: int) -> list:
@@ -114,13 +113,11 @@ class Lockstep:
                 live[i] = i < n
             except Exception as e:  # noqa: BLE001 - this rollout fails, the others run
                 out[i] = ("failed", f"{type(e).__name__}: {e}")
-                lanes[i].restart(*self.leader._start_qv)   # a valid row for the vmapped calls
+                lanes[i].restart(*self.leader.start_state)   # a valid row for the vmapped calls
                 sims[i].reset()
                 meas[i] = sims[i].sense(0.0)[0]
-        fixed = np.stack([np.asarray(lane._fixed) for lane in lanes])
-        state = np.stack([np.asarray(lane._state) for lane in lanes])
-        tally = np.stack([np.asarray(lane._tally) for lane in lanes])
-        flat = np.stack([lane._well_formed(m) for lane, m in zip(lanes, meas)])
+        fixed, state, tally = (np.stack(a) for a in zip(*[lane.flat_arrays() for lane in lanes]))
+        flat = np.stack([lane.flat_measurement(m) for lane, m in zip(lanes, meas)])
         plant = jax.tree_util.tree_map(lambda *a: np.stack(a),
                                        *[metrics.plant_init() for _ in range(W)])
         sole0 = np.stack([s.sole0 for s in sims])
@@ -128,7 +125,7 @@ class Lockstep:
         legs = np.zeros(W, bool)
         fell_step = np.full(W, -1)
         pushes = [None if i >= n or tasks[i] is None else tasks[i][1] for i in range(W)]
-        no_sol = self.leader._no_sol
+        no_sol = self.leader.no_solution()
         prev_prep, prev_sol = self._no_previous_step(W)
         pending = None      # the last step's (conclude mask, plant mask, soles, loop res, legs)
         for k in range(n_steps):
@@ -188,7 +185,7 @@ class Lockstep:
             if out[i] is not None:
                 continue
             lane = lanes[i]
-            lane._tally, lane._state = tally[i].copy(), state[i].copy()
+            lane.set_flat_arrays(state[i], tally[i])
             fell = bool(fell_step[i] >= 0)
             acc = jax.tree_util.tree_map(lambda a: a[i], plant)
             flat_cols = metrics.finalize(lane.tally.acc, acc, fell,

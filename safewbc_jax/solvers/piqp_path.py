@@ -47,6 +47,7 @@ variables for PIQP to factor).
 
 from __future__ import annotations
 
+import copy
 import time
 from typing import Any
 
@@ -237,6 +238,17 @@ class PiqpSolver:
         """Forget the set-up solvers (the next call does a fresh setup)."""
         self._nominal = _make_backend(self.backend, self.nominal_settings, self.update)
         self._relaxed = _make_backend(self.backend, self.settings, self.update)
+
+    def lane(self) -> "PiqpSolver":
+        """A solver of the same settings with backends of its own (``solvers.host``)."""
+        other = copy.copy(self)
+        other.reset()
+        return other
+
+    @staticmethod
+    def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
+        """``solve_lanes`` of this module (``solvers.host``: several lanes at once)."""
+        return solve_lanes(solvers, qp, checks)
 
     def solve(self, qp: QP, initvals=None, checks: policy.Checks | None = None) -> SolveResult:
         """The policy's outcome for ``qp`` (class docstring). ``checks``: ``policy.checks``

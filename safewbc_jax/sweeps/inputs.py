@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from safewbc_jax.push import Push
 from safewbc_jax.sweeps.spec import SweepSpec
-
 
 
 def base_params(spec: SweepSpec):
@@ -53,9 +53,10 @@ def params_batch(base, axes, values: np.ndarray):
     return type(base)(**fields)
 
 
-def push_arrays(spec: SweepSpec, values: np.ndarray) -> dict:
-    """Per-rollout push (magnitude, direction in degrees, at, duration, and the force
-    vector fx, fy, fz) from the fixed push and the swept push axes."""
+def pushes(spec: SweepSpec, values: np.ndarray) -> tuple[Push, dict]:
+    """The rollouts' pushes from the fixed push and the swept push axes: (the batched
+    ``Push`` every engine takes; its table columns: magnitude, direction in degrees, at,
+    duration, and the force vector fx, fy, fz)."""
     b = values.shape[0]
     out = {k: np.full(b, float(v)) for k, v in spec.push.items()}
     for j, a in enumerate(spec.axes):
@@ -65,7 +66,8 @@ def push_arrays(spec: SweepSpec, values: np.ndarray) -> dict:
     out["fx"] = out["magnitude"] * np.cos(rad)
     out["fy"] = out["magnitude"] * np.sin(rad)
     out["fz"] = np.zeros(b)
-    return out
+    force = np.stack([out["fx"], out["fy"], out["fz"]], axis=1)
+    return Push(force, out["at"].copy(), out["duration"].copy()), out
 
 
 def velocity_std(spec: SweepSpec, sim_model) -> np.ndarray:

@@ -240,7 +240,7 @@ class PoolExecutor:
         return 120.0 + 0.02 * n_steps * rollouts   # 20 ms a robot-step: ~25x the measured
 
     # --- a chunk
-    def __call__(self, spec, params, push: dict, perturb_v) -> dict:
+    def __call__(self, spec, params, push, perturb_v) -> dict:
         import jax
 
         from safewbc_jax.push import Push
@@ -252,8 +252,7 @@ class PoolExecutor:
 
         def task(i):
             p = jax.tree_util.tree_map(lambda a: a[i], leaves)
-            f = np.array([push["fx"][i], push["fy"][i], push["fz"][i]], float)
-            return (p, Push.single(f, float(push["at"][i]), float(push["duration"][i])),
+            return (p, Push.single(push.force[i], float(push.at[i]), float(push.duration[i])),
                     perturb_v[i])
 
         # the chunk's lockstep groups: a function of the chunk alone (not of the worker

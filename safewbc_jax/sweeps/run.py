@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 
 from safewbc_jax.progress import Progress
+from safewbc_jax.push import Push
 from safewbc_jax.sweeps import inputs
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.spec import SweepSpec
@@ -42,20 +43,18 @@ class SweepResult:
 
 
 def real_executor():
-    """``safewbc_jax.batch.rollout.run_batch`` with its config class and Push."""
+    """The mjx engine's executor: ``safewbc_jax.batch.rollout.run_batch``."""
     try:
-        from safewbc_jax.batch.rollout import BatchConfig, Push, run_batch
+        from safewbc_jax.batch.rollout import BatchConfig, run_batch
     except ImportError as e:
         raise RuntimeError(f"the batched rollout path is not available ({e}); sweeps need "
                            "safewbc_jax.batch.rollout.run_batch") from None
 
-    def execute(spec: SweepSpec, params, push: dict, perturb_v: np.ndarray) -> dict:
+    def execute(spec: SweepSpec, params, push: Push, perturb_v: np.ndarray) -> dict:
         cfg = BatchConfig(scenario=spec.scenario, barrier=spec.barrier, duration=spec.duration,
                           settle=spec.settle, control_dt=spec.control_dt, decimate=0,
                           safe_sets=tuple(spec.safe_sets), precision=spec.precision)
-        p = Push(force=np.stack([push["fx"], push["fy"], push["fz"]], axis=1),
-                 at=np.asarray(push["at"], float), duration=np.asarray(push["duration"], float))
-        metrics, _ = run_batch(cfg, params, p, perturb_v)
+        metrics, _ = run_batch(cfg, params, push, perturb_v)
         return metrics
 
     return execute
@@ -101,12 +100,12 @@ def sim_model():
 
 def chunk_inputs(spec: SweepSpec, base, settings: np.ndarray, rollouts: np.ndarray,
                  seed: int, std: np.ndarray):
-    """Inputs of the rollouts ``rollouts`` (global indices): (params batch, push dict,
+    """Inputs of the rollouts ``rollouts`` (global indices): (params batch, ``Push`` batch,
     perturbation (len, nv), per-rollout columns to write)."""
     setting = rollouts // spec.repeats
     vals = settings[setting]
     params = inputs.params_batch(base, spec.axes, vals)
-    push = inputs.push_arrays(spec, vals)
+    push, push_cols = inputs.pushes(spec, vals)
     dv = inputs.perturbations(seed, rollouts, std, spec.noise_period)
     cols = {"rollout": rollouts.astype(np.int64), "setting": setting.astype(np.int64),
             "repeat": (rollouts % spec.repeats).astype(np.int64)}
@@ -116,7 +115,7 @@ def chunk_inputs(spec: SweepSpec, base, settings: np.ndarray, rollouts: np.ndarr
         for i in range(spec.pole_counts[b]):
             cols[f"poles.{b}.p{i + 1}"] = params.poles[b][:, i].copy()
     for k in ("magnitude", "direction", "at", "duration", "fx", "fy", "fz"):
-        cols[f"push.{k}"] = push[k]
+        cols[f"push.{k}"] = push_cols[k]
     cols["perturb.norm"] = np.linalg.norm(dv, axis=1)
     return params, push, dv, cols
 
@@ -161,7 +160,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
               quiet: bool = False, desc: str | None = None, stream=None,
               engine: str = "mjx", workers: int | None = None) -> SweepResult:
     """Run (or resume) the sweep into ``out``. ``executor(spec, params, push, perturb_v)``
-    returns the metrics dict of a batch (default: the real ``run_batch``).
+    (a batch: ControllerParams, ``push.Push`` and perturbations with a leading rollout axis)
+    returns the metrics dict of the batch (default: the real ``run_batch``).
     ``max_chunks`` stops after that many chunks of this call (for notebooks and tests).
     Progress: with ``progress`` None, a tqdm bar of the rollouts (``progress.Progress``,
     titled ``desc``) and the messages go to ``stream`` (default stderr), nothing with
@@ -262,7 +262,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
             m = stop - start
             if m < batch and pads:
                 params = jax.tree_util.tree_map(lambda x: _pad(x, batch), params)
-                push = {kk: _pad(v, batch) for kk, v in push.items()}
+                push = jax.tree_util.tree_map(lambda x: _pad(x, batch), push)
                 dv = _pad(dv, batch)
             metrics = execute(spec, params, push, dv)
             if key is not None:

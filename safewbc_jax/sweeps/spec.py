@@ -3,7 +3,8 @@
 A spec is a TOML file::
 
     [sweep]
-    scenario = "arms"        # a scenario of the batched path
+    scenario = "arms"        # a scenario's name, or "my_scenario.py:NAME": a Scenario of
+                             #   your own (the path from the spec's folder)
     barrier = true           # enforce the scenario's A-ECBF rows
     duration = 3.0           # seconds of motion (default: the scenario's)
     settle = 1.5             # seconds standing before the motion (default: the scenario's)
@@ -34,22 +35,10 @@ A spec is a TOML file::
     base_angular = 0.0       # std of each base angular velocity component (rad/s)
     joints = 0.0             # std of each hinge joint rate (rad/s)
 
-    [tune]                   # used by ``safewbc tune`` and ``tune-poles`` only
-    method = "cmaes"         # or "grid" (successive grid refinement; tune-poles' search)
-    budget = 240             # rollouts of the search (default: 10 CMA-ES generations,
-                             #   or the grid's rounds)
-    validate = 64            # held-out rollouts of the result (0: none)
-    population = 6           # CMA-ES candidates a generation (default 4 + floor(3 ln d))
-    sigma = 0.3              # CMA-ES's first step, as a fraction of each range
-    objective = ["tracking_rms.arms"]   # or { "tracking_rms.arms" = 1.0, "zmp_margin_min" = -1.0 }
-    rounds = 3  points = 4  shrink = 0.5    # the grid search
-    barrier = "left_fist"  pole_min = 0.5  pole_max = 200.0  equal_poles = false
-                             # without [tune.params]: the poles of this barrier in this box
-                             #   (equal_poles: one parameter p1 = ... = pr)
-
-    [tune.params]            # what to tune: any controller axis name of [grid], with
+    [tune]                   # ``safewbc tune`` and ``tune-poles`` only: method, budget,
+    objective = ["tracking_rms.arms"]   # validate, population, sigma, the grid's keys
+    [tune.params]            # what to tune: controller axes of [grid] (docs/sweeps.md)
     "poles.left_fist.p1" = { bounds = [2.0, 128.0] }               # log scale when > 0
-    "gain_scale.arms" = { bounds = [0.5, 2.0], scale = "linear", start = 1.0 }
 
 Axis names in ``[grid]``:
 
@@ -80,6 +69,7 @@ from pathlib import Path
 
 import numpy as np
 
+from safewbc_jax import userfile
 from safewbc_jax.push import PUSH_AT, PUSH_FOR
 
 SECTIONS = ("sweep", "params", "grid", "push", "perturb", "tune")
@@ -167,10 +157,9 @@ class SweepSpec:
              if k not in ("path", "seed", "batch", "description", "tune", "safe_sets")
              and not (k == "precision" and v == "float64")}   # hashes from before the key
         if self.safe_sets:   # by name and file content, not by where the file lies
-            from safewbc_jax import safesets
-
-            d["safe_sets"] = [[r.rsplit(":", 1)[1], safesets.file_digest(r)]
-                              for r in self.safe_sets]
+            d["safe_sets"] = [[r.rsplit(":", 1)[1], userfile.digest(r)] for r in self.safe_sets]
+        if userfile.is_ref(self.scenario):                 # a user's scenario: likewise
+            d["scenario"] = [self.scenario.rsplit(":", 1)[1], userfile.digest(self.scenario)]
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def setting(self, index: int) -> dict:
@@ -260,6 +249,10 @@ def _quote(key: str) -> str:
     return f'"{key}"' if "." in key else key
 
 
+def _spec_folder(src) -> Path:
+    return Path(src).parent if Path(src).is_file() else Path.cwd()
+
+
 def _safe_set_refs(src, value) -> tuple:
     """sweep.safe_sets: a list of "FILE.py:NAME", FILE relative to the spec's folder ->
     the references with absolute paths (SpecError on a malformed one; the files are loaded,
@@ -269,7 +262,7 @@ def _safe_set_refs(src, value) -> tuple:
     if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
         raise SpecError(f"{src}: sweep.safe_sets = {_fmt(value)}: expected a list of "
                         "\"FILE.py:NAME\" strings")
-    base = Path(src).parent if Path(src).is_file() else Path.cwd()
+    base = _spec_folder(src)
     refs = []
     for ref in value:
         try:
@@ -284,17 +277,20 @@ def _safe_set_refs(src, value) -> tuple:
 def _scenario_info(src, name, safe_sets=()):
     """(enforced barriers, monitored barriers, outputs, pole counts) of a scenario with
     the user's ``safe_sets``, or a SpecError naming the scenarios there are (the batched
-    path runs them all)."""
+    path runs them all). ``name``: a scenario's name or a user's "ABSOLUTE/FILE.py:NAME"."""
     from safewbc_jax import safesets, scenarios
 
-    known = list(scenarios.SCENARIOS) + list(scenarios.WALKING)
-    if not isinstance(name, str) or name not in known:
+    known = scenarios.names()
+    if not isinstance(name, str) or name not in known and not userfile.is_ref(name):
         raise SpecError(f"{src}: sweep.scenario = {_fmt(name)}: no such scenario; "
-                        f"scenarios are {', '.join(known)}")
+                        f"scenarios are {', '.join(known)}, or a Scenario of your own as "
+                        "\"FILE.py:NAME\" (FILE from the spec's folder)")
     try:
         sc = scenarios.get_scenario(name, True, safe_sets)
     except safesets.SafeSetError as e:
         raise SpecError(f"{src}: sweep.safe_sets: {e}") from None
+    except ValueError as e:          # the user's scenario file
+        raise SpecError(f"{src}: sweep.scenario: {e}") from None
     params = sc.default_params()
     return (tuple(b.name for b in sc.barriers), tuple(b.name for b in sc.monitors),
             tuple(o.name for o in sc.outputs),
@@ -402,6 +398,8 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
     if "scenario" not in sw:
         raise SpecError(f"{src}: sweep.scenario is missing (the scenario to roll out)")
     scenario = sw["scenario"]
+    if userfile.is_ref(scenario):          # FILE from the spec's folder
+        scenario = userfile.absolute(scenario, _spec_folder(src), "scenario")
     safe_sets = _safe_set_refs(src, sw["safe_sets"]) if "safe_sets" in sw else ()
     barriers, monitors, outputs, pole_counts, defaults = _scenario_info(src, scenario, safe_sets)
     num = lambda k, **kw: _number(src, f"sweep.{k}", sw[k], **kw) if k in sw else None  # noqa: E731

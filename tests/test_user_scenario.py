@@ -1,0 +1,147 @@
+"""A user's own walking-free Scenario in a file of their own (``examples/side_sway.py``):
+loaded by reference "FILE.py:NAME" wherever a scenario's name goes, refused with a clear
+error before anything compiles, and run (slow) by ``safewbc run`` and by ``safewbc sweep``
+on both engines."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safewbc_jax import scenarios
+from safewbc_jax.scenario import Scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "side_sway.py"
+REF = f"{EXAMPLE}:SIDE_SWAY"
+
+
+def test_a_user_scenario_loads_by_reference_and_bad_ones_are_named(tmp_path):
+    sc = scenarios.get_scenario(REF)
+    assert isinstance(sc, Scenario) and sc.name == "side_sway" and sc.gait is None
+    assert [b.name for b in sc.barriers] == ["com_side"]
+    assert [t.name for t in sc.tasks] == ["com", "torso", "arms"]
+    assert float(sc.default_params().threshold["com_side"]) == 0.04
+    assert scenarios.get_scenario(sc) is sc                   # a Scenario object itself
+    # the user's safe sets add to it as to a named scenario
+    lean = f"{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"
+    assert [b.name for b in scenarios.get_scenario(REF, True, (lean,)).barriers] == \
+        ["com_side", "torso_lean"]
+    with pytest.raises(ValueError, match="COM_SIDE is a SafeSet, not a safewbc_jax.scenario.Scenario"):
+        scenarios.get_scenario(f"{EXAMPLE}:COM_SIDE")
+    with pytest.raises(ValueError, match="has no 'NOPE'; Scenarios there: SIDE_SWAY"):
+        scenarios.get_scenario(f"{EXAMPLE}:NOPE")
+    with pytest.raises(ValueError, match="does not exist"):
+        scenarios.get_scenario(f"{tmp_path / 'none.py'}:X")
+    with pytest.raises(ValueError, match="or a Scenario of your own as FILE.py:NAME"):
+        scenarios.get_scenario("dance")
+
+
+def test_cli_and_batch_refuse_a_bad_scenario_file_before_compiling(capsys, tmp_path):
+    from safewbc_jax.batch.rollout import BatchConfig, BatchError, plant
+    from safewbc_jax.cli import main
+
+    assert main(["run", "examples/none.py:X", "--cpu", "-1"]) == 2
+    assert "examples/none.py does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["run", "dance"])
+    assert "FILE.py:NAME (a Scenario of your own)" in capsys.readouterr().err
+    with pytest.raises(BatchError, match="has no 'NOPE'"):
+        plant(BatchConfig(f"{EXAMPLE}:NOPE"))
+    with pytest.raises(BatchError, match="or a Scenario of your own as FILE.py:NAME"):
+        plant(BatchConfig("dance"))
+
+
+def test_sweep_spec_takes_a_scenario_file_from_its_folder(tmp_path):
+    from safewbc_jax.sweeps.spec import SpecError, load_spec
+
+    shutil.copy(EXAMPLE, tmp_path / "side_sway.py")
+    spec = tmp_path / "sway.toml"
+    spec.write_text('[sweep]\nscenario = "side_sway.py:SIDE_SWAY"\n'
+                    '[grid]\n"poles.com_side.p1" = [5.0, 10.0]\n')
+    s = load_spec(spec)
+    assert s.scenario == f"{(tmp_path / 'side_sway.py').resolve()}:SIDE_SWAY"
+    assert s.barriers == ("com_side",) and s.n_rollouts == 2
+    # the table's fingerprint follows the file's content, not where it lies
+    fp = s.fingerprint()
+    (tmp_path / "side_sway.py").write_text(EXAMPLE.read_text().replace("0.04", "0.05"))
+    assert load_spec(spec).fingerprint() != fp
+    spec.write_text('[sweep]\nscenario = "nowhere.py:SIDE_SWAY"\n')
+    with pytest.raises(SpecError, match="sweep.scenario: .*nowhere.py does not exist"):
+        load_spec(spec)
+
+
+SPEC = """
+[sweep]
+scenario = "side_sway.py:SIDE_SWAY"
+duration = 0.05
+settle = 1.0
+seed = 3
+
+[grid]
+"poles.com_side.p1" = [5.0, 20.0]
+
+[perturb]
+base_linear = 0.02
+"""
+
+
+@pytest.fixture(scope="module")
+def user_runs(tmp_path_factory):
+    """``safewbc run`` of the example for 1.6 s of motion (the sway passes the limit at
+    tau = 0.47 s and peaks at tau = 1 s), and a two-rollout sweep of it on each engine, the
+    three side by side (their compiles are single-threaded)."""
+    tmp = tmp_path_factory.mktemp("user_scenario")
+    shutil.copy(EXAMPLE, tmp / "side_sway.py")
+    (tmp / "sway.toml").write_text(SPEC)
+    env = __import__("test_sweeps_rollouts").sweep_env(1)
+    cli = [sys.executable, "-m", "safewbc_jax.cli"]
+    sweep = cli + ["sweep", "sway.toml", "--batch", "2", "--quiet"]
+    procs = {
+        "run": subprocess.Popen(cli + ["run", "side_sway.py:SIDE_SWAY", "--duration", "1.6",
+                                       "--settle", "1.0", "--out", "run", "--cpu", "-1"],
+                                cwd=tmp, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True),
+        "mjx": subprocess.Popen(sweep + ["--out", "mjx", "--engine", "mjx"], cwd=tmp, env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
+        "mujoco": subprocess.Popen(sweep + ["--out", "mujoco", "--engine", "mujoco",
+                                            "--workers", "1"], cwd=tmp, env=env,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
+    }
+    out = {k: (p.wait(timeout=1500), *p.communicate()) for k, p in procs.items()}
+    return tmp, out
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_user_scenario_runs_in_safewbc_run_and_both_sweep_engines(user_runs):
+    from safewbc_jax.sweeps import table
+
+    tmp, out = user_runs
+    for name, (rc, stdout, stderr) in out.items():
+        assert rc == 0, (name, stdout[-2000:], stderr[-3000:])
+    m = json.loads((tmp / "run" / "metrics.json").read_text())
+    assert not m["fell"] and m["qp_failed"] == 0
+    # the barrier holds the CoM at its 4 cm limit while the reference goes on to 6 cm: h
+    # stays >= -1 mm and comes within 5 mm of 0 (it binds; it does not merely slow the sway)
+    assert -1e-3 <= m["barrier_min"]["com_side"] <= 5e-3, m["barrier_min"]
+    log = np.load(tmp / "run" / "log.npz")
+    assert np.max(log["yd_com"][:, 1] - log["yd_com"][0, 1]) > 0.055    # the reference's sway
+    # both engines: the same rollouts, nobody falls, every QP solved, the barrier minima
+    # within 5 mm: h is the CoM's lateral offset, and 5 mm is the MJX-against-C CoM
+    # tolerance (tests/test_mjx_closed_loop.py; measured 1.4 mm here, with the 2 cm/s
+    # start perturbation the engines' contact models answer differently)
+    a, b = table.read_columns(tmp / "mjx"), table.read_columns(tmp / "mujoco")
+    assert a["rollout"].tolist() == b["rollout"].tolist() == [0, 1]
+    np.testing.assert_array_equal(a["poles.com_side.p1"], [5.0, 20.0])
+    for cols in (a, b):
+        assert not cols["fell"].any() and (cols["qp_failed"] == 0).all()
+        assert (cols["error"] == "").all()
+        assert np.all((cols["barrier_min.com_side"] > 0.03) & (cols["barrier_min.com_side"] < 0.045))
+    np.testing.assert_allclose(a["barrier_min.com_side"], b["barrier_min.com_side"], atol=5e-3)
+    manifest = json.loads((tmp / "mjx" / table.MANIFEST).read_text())
+    assert manifest["engine"] == "mjx"
