@@ -1,5 +1,6 @@
 import os
 import tempfile
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -71,14 +72,15 @@ def pytest_runtest_makereport(item, call):
                         f"(the fast tier's limit is {FAST_LIMIT_S:g} s a test)")
 
 
-# Parallel runs (pytest-xdist, ``-n auto --dist loadgroup`` in pyproject.toml): most of the
+# Parallel runs (pytest-xdist, ``-n auto --dist loadfile`` in pyproject.toml): most of the
 # suite's time is XLA compiling closed loops, one core each, so two test files at a time
-# use a 2-core machine that one leaves half idle. Each file is one xdist group, run whole
-# on one worker (its module fixtures are computed once); files that share session
-# fixtures or compiled programs (through the persistent cache, which helps only when the
-# second runs after the first) are one group together. The long groups start first, so
-# that none starts last (the order only schedules). From the full suite's --durations on
-# a 2-core CPU.
+# use a 2-core machine that one leaves half idle. Each file runs whole on one worker (its
+# module fixtures are computed once); files that share session fixtures or compiled
+# programs (through the persistent cache, which helps only when the second runs after the
+# first) run as one unit (GROUPS, by ``pytest_xdist_make_scheduler``: xdist's own
+# ``xdist_group`` marks do not group on pytest 9.2, pytest-xdist issue 1386). The long
+# units start first, so that none starts last (the order only schedules). From the full
+# suite's --durations on a 2-core CPU.
 GROUPS = {"test_sweeps_rollouts.py": "sweep_engines", "test_tune_rollouts.py": "sweep_engines",
           "test_mjx_closed_loop.py": "deployment_runs", "test_closed_loop.py": "deployment_runs",
           "test_walking.py": "deployment_runs"}
@@ -97,10 +99,22 @@ def pytest_xdist_auto_num_workers(config):
     return max(1, min(len(os.sched_getaffinity(0)), MAX_WORKERS))
 
 
-@pytest.hookimpl(tryfirst=True)      # before xdist reads the groups
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile``, with the files of a GROUPS entry one unit."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FileGroups(LoadScopeScheduling):
+        def _split_scope(self, nodeid):
+            path = nodeid.split("::", 1)[0]
+            return GROUPS.get(Path(path).name, path)
+
+    return FileGroups(config, log)
+
+
 def pytest_collection_modifyitems(config, items):
-    for it in items:
-        it.add_marker(pytest.mark.xdist_group(GROUPS.get(it.path.name, it.path.name)))
     rank = {name: i for i, name in enumerate(LONG_FIRST)}
     items.sort(key=lambda it: rank.get(GROUPS.get(it.path.name, it.path.name),
                                        len(LONG_FIRST)))   # stable

@@ -38,6 +38,7 @@ def check(solver) -> None:
 
 
 def reset(solver) -> None:
+    """``solver.reset()`` where it has one."""
     getattr(solver, "reset", lambda: None)()
 
 
