@@ -398,13 +398,10 @@ class StartCheck:
         """Raise barriers.PoleError unless every barrier's poles are admissible at each
         start state. ``batched``: params with a leading axis N, v (N, nv), the error names
         the rollout; else one robot's params and v (nv,)."""
+        one = (lambda a: np.asarray(a)[None]) if not batched else (lambda a: a)  # noqa: E731
         for b in self.scenario.barriers:
-            thr, poles = params.threshold[b.name], params.poles[b.name]
-            if not batched:
-                v_, thr, poles = np.asarray(v)[None], np.asarray(thr)[None], np.asarray(poles)[None]
-            else:
-                v_ = v
-            check_start_poles(b.name, self.etas(b.name, v_, thr), poles, batched)
+            check_start_poles(b.name, self.etas(b.name, one(v), one(params.threshold[b.name])),
+                              one(params.poles[b.name]), batched)
 
 
 def check_start_poles(name: str, etas, poles, batched: bool) -> None:

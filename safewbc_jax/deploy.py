@@ -548,8 +548,8 @@ class Controller:
         L, lead = len(lanes), lanes[0]
         sols = np.tile(lead._no_sol, (L, 1))
         cmds = [None] * L
-        kind = type(lead.solver)
-        batched = np.array([r == "ok" and type(lane.solver) is kind and host.solves_lanes(lane.solver)
+        kind, together = type(lead.solver), host.solves_lanes(lead.solver)
+        batched = np.array([together and r == "ok" and type(lane.solver) is kind
                             for r, lane in zip(reasons, lanes)])
         for i in np.flatnonzero(~batched).tolist():
             cmds[i] = lanes[i]._finish(prep[i], packed[i], reasons[i], ts[i], t_in, t_in)

@@ -14,6 +14,7 @@ import pytest
 
 from safewbc_jax import scenarios
 from safewbc_jax.scenario import Scenario
+from test_sweeps_rollouts import sweep_env
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "side_sway.py"
@@ -98,7 +99,7 @@ def user_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("user_scenario")
     shutil.copy(EXAMPLE, tmp / "side_sway.py")
     (tmp / "sway.toml").write_text(SPEC)
-    env = __import__("test_sweeps_rollouts").sweep_env(1)
+    env = sweep_env(1)
     cli = [sys.executable, "-m", "safewbc_jax.cli"]
     sweep = cli + ["sweep", "sway.toml", "--batch", "2", "--quiet"]
     procs = {

@@ -174,12 +174,12 @@ def plant(cfg: BatchConfig) -> Plant:
     _schedule(sc, cfg)               # before the plant
     # the cache key names each user's file by its resolved path and content: an edited
     # file gets a new plant, and "a.py:X" and "./a.py:X" share one
-    refs = tuple(f"{p.resolve()}:{n}" for p, n in map(safesets.split_ref, cfg.safe_sets))
-    files = refs
+    refs = tuple(userfile.absolute(r, Path.cwd(), "safe set", safesets.SafeSetError)
+                 for r in cfg.safe_sets)
     scenario = cfg.scenario
     if userfile.is_ref(scenario):
         scenario = userfile.absolute(scenario, Path.cwd(), "scenario")
-        files = (scenario,) + refs
+    files = ((scenario,) if userfile.is_ref(scenario) else ()) + refs
     return _plant(scenario, cfg.barrier, float(cfg.control_dt), refs,
                   tuple(userfile.digest(r) for r in files), cfg.precision)
 
@@ -271,7 +271,6 @@ def _check_inputs(pl: Plant, params, push: Push, perturb_v) -> int:
     return int(batch)
 
 
-@functools.lru_cache(maxsize=16)
 @functools.lru_cache(maxsize=16)
 def _start_check(pl: Plant) -> control_step.StartCheck:
     """Theorem 1 at the stand pose of ``pl`` (``control_step.StartCheck``, jitted)."""

@@ -156,10 +156,12 @@ class SweepSpec:
         d = {k: v for k, v in dataclasses.asdict(self).items()
              if k not in ("path", "seed", "batch", "description", "tune", "safe_sets")
              and not (k == "precision" and v == "float64")}   # hashes from before the key
-        if self.safe_sets:   # by name and file content, not by where the file lies
-            d["safe_sets"] = [[r.rsplit(":", 1)[1], userfile.digest(r)] for r in self.safe_sets]
-        if userfile.is_ref(self.scenario):                 # a user's scenario: likewise
-            d["scenario"] = [self.scenario.rsplit(":", 1)[1], userfile.digest(self.scenario)]
+        # a user's file by name and content, not by where it lies
+        by_content = lambda ref: [ref.rsplit(":", 1)[1], userfile.digest(ref)]  # noqa: E731
+        if self.safe_sets:
+            d["safe_sets"] = [by_content(r) for r in self.safe_sets]
+        if userfile.is_ref(self.scenario):
+            d["scenario"] = by_content(self.scenario)
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
     def setting(self, index: int) -> dict:
@@ -262,16 +264,11 @@ def _safe_set_refs(src, value) -> tuple:
     if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
         raise SpecError(f"{src}: sweep.safe_sets = {_fmt(value)}: expected a list of "
                         "\"FILE.py:NAME\" strings")
-    base = _spec_folder(src)
-    refs = []
-    for ref in value:
-        try:
-            path, name = safesets.split_ref(ref)
-            full = f"{(base / path).resolve()}:{name}"
-        except safesets.SafeSetError as e:
-            raise SpecError(f"{src}: sweep.safe_sets: {e}") from None
-        refs.append(full)
-    return tuple(refs)
+    try:
+        return tuple(userfile.absolute(ref, _spec_folder(src), "safe set", safesets.SafeSetError)
+                     for ref in value)
+    except safesets.SafeSetError as e:
+        raise SpecError(f"{src}: sweep.safe_sets: {e}") from None
 
 
 def _scenario_info(src, name, safe_sets=()):
