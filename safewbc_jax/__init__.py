@@ -36,3 +36,15 @@ def require_x64(what: str) -> None:
     if not jax.config.jax_enable_x64:
         raise RuntimeError(f"{what} needs JAX's 64-bit floats: call safewbc_jax.enable_x64() "
                            "first (or set JAX_ENABLE_X64=1)")
+
+
+def use_compile_cache(directory: str) -> None:
+    """Keep this process's compiled XLA programs in ``directory`` (JAX's persistent
+    compilation cache) and load them from there in later processes: every program, the
+    small eager ones too (``jax_persistent_cache_min_compile_time_secs`` = 0). Those are a
+    few hundred of about 20 ms each when a controller starts; compiled again, they cost a
+    warm ``safewbc run arms`` 16 s where loading them costs 9 s (benchmarks/README.md)."""
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", directory)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

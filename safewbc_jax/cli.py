@@ -41,12 +41,10 @@ def _compile_cache(args) -> None:
 
     if getattr(args, "no_cache", False):
         return
-    import jax
+    import safewbc_jax
 
-    d = os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "safewbc-jax", "xla")
-    jax.config.update("jax_compilation_cache_dir", d)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    safewbc_jax.use_compile_cache(os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "safewbc-jax", "xla"))
 
 
 def _engine_args(p) -> None:

@@ -17,6 +17,10 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       os.path.join(tempfile.gettempdir(), "safewbc-jax-test-xla-cache"))
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 5.0)
+# The subprocesses keep every program, the small eager ones too, as the command does
+# (safewbc_jax.use_compile_cache): each process that starts a controller loads a few
+# hundred of them instead of compiling them again (~7 s a process on a 2-core CPU).
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 # Two tiers: `pytest -m "not slow"` is the fast one (minutes), the full suite adds the
 # tests marked slow (those that compile an MJX loop, run a closed loop or start a

@@ -1,11 +1,14 @@
 """Every numeric option of the CLI is checked before anything compiles, and refused with
 a message that names the option and its allowed range (issue: bad values that ran)."""
 
+import os
+import subprocess
+import sys
 import time
-
-import pytest
-
 from pathlib import Path
+
+import numpy as np
+import pytest
 
 from safewbc_jax import cli
 
@@ -112,3 +115,18 @@ def test_check_run_options_defaults():
     assert o["push"] is None and o["duration"] == 3.0
     o = runner.check_run_options("walk", scenarios.get_scenario("walk"), speed=1.1)
     assert o["speed"] == 1.1
+
+
+def test_compile_cache_keeps_the_small_programs_too(tmp_path):
+    """The command's compilation cache (``safewbc_jax.use_compile_cache``, which the CLI and
+    the pool's workers call) keeps a program that compiles in milliseconds, so that the next
+    process loads it: a controller's start compiles a few hundred of them."""
+    code = ("import sys, jax.numpy as jnp, safewbc_jax\n"
+            "safewbc_jax.use_compile_cache(sys.argv[1])\n"
+            "print(float(jnp.sin(jnp.arange(3.0)).sum()))\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_PERSISTENT_CACHE")}
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert float(out.stdout) == pytest.approx(np.sin(1.0) + np.sin(2.0), abs=1e-6)
+    assert [p.name for p in tmp_path.glob("jit_sin-*")], sorted(p.name for p in tmp_path.iterdir())

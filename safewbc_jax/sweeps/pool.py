@@ -79,11 +79,8 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
         import safewbc_jax
 
         safewbc_jax.enable_x64()
-        import jax
-
         if job.get("cache_dir"):
-            jax.config.update("jax_compilation_cache_dir", job["cache_dir"])
-            jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+            safewbc_jax.use_compile_cache(job["cache_dir"])
         from safewbc_jax import control_step, metrics, scenarios
         from safewbc_jax.deploy import Controller
         from safewbc_jax.sim.lockstep import Lockstep
