@@ -30,8 +30,8 @@ from safewbc_jax import control_step, metrics, paths, robot, scenarios
 from safewbc_jax.packing import FlatTree, Packer
 from safewbc_jax.solvers import host, policy, reduce
 from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
-from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_RELAXED, NOT_ATTEMPTED,
-                                        SolveResult, fallback_name, failed)
+from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_RELAXED,
+                                        SolveResult, fallback_name, failed, row)
 from safewbc_jax.solvers.status import SolveStatus
 
 # the measurement bounds and the fall test are the control step's (one definition)
@@ -366,7 +366,10 @@ class Controller:
 
     def last_qp(self):
         """The full QP (``qp_types.QP``, numpy) of the last good step."""
-        return self._last_qp
+        if self._last_qp is None:
+            return None
+        qpm, j = self._last_qp
+        return qpm.with_arrays(lambda a: a[j])
 
     @property
     def state(self) -> control_step.ControllerState:
@@ -407,7 +410,8 @@ class Controller:
         if r is not None and not isinstance(r, HostRecord):
             packed, x, res, t_qp, t_solve = r
             rec, q, v, domain = self._unpack_out(packed)
-            r = self._record = HostRecord(rec, q, v, domain, x, res, t_qp, t_solve)
+            r = self._record = HostRecord(rec, q, v, domain, x,
+                                          None if res is None else row(res, 0), t_qp, t_solve)
         return r
 
     def kernels(self) -> dict:
@@ -468,41 +472,72 @@ class Controller:
         return self.flat_measurement(meas), reason
 
     def _finish(self, prep, packed, reason: str, t, t_in: float, t_step: float) -> Command:
-        """The host side of a step after the jitted prepare (its ``prep`` and packed QP):
-        PIQP on the reduced QP, the held-torque rule, the pending ``conclude``; a refused
-        measurement (``reason`` not "ok", which the jitted step refused too) holds the
-        last good torque. ``sim.lockstep`` calls it per lane with rows of a vmapped
-        prepare."""
+        """The host side of one robot's step after the jitted prepare (its ``prep`` and
+        packed QP): ``_solve_lanes`` with this one lane, its ``conclude`` left pending
+        (``flush``). A refused measurement (``reason`` not "ok", which the jitted step
+        refused too) holds the last good torque (``_hold``)."""
         if reason != "ok":
-            self.last_times = (np.nan, np.nan)
-            if self.keep_metrics:
-                self._pending = (prep, self._flat_sol(failed(self._nx)), None, None,
-                                 np.nan, np.nan)
-            return self._command(self._last_u, None, "held", reason, t_in)
-        qpm, red, rmap, checks = self._unpack_qp(packed)
-        self._last_qp = qpm
-        t1 = time.perf_counter()
-        # a SolveResult of the reduced QP; PIQP's acceptance from the step's own checks
-        res = self.solver.solve(red, checks=checks)
-        x = reduce.expand(res.x, rmap)               # all NaN where it failed
-        usable = res.fallback != FALLBACK_FAILED and bool(np.all(np.isfinite(x)))
-        if usable:
-            res = res._replace(x=x, eq_residual=float(np.max(np.abs(qpm.A @ x - qpm.b))))
-        else:   # the solver's status, or NUMERICAL where it gave a non-finite X
-            status = res.status if res.fallback == FALLBACK_FAILED else SolveStatus.NUMERICAL
-            res = failed(self._nx, status)._replace(iterations=res.iterations)
-            x = None
-        t2 = time.perf_counter()
-        u = control_step.hold_torque(res.x, usable, self._last_u, qpm.blocks)
-        self.last_times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6)
+            return self._hold(prep, reason, t_in)
+        cmds, sols, res, x, usable = Controller._solve_lanes(
+            [self], np.asarray(packed)[None], (t,), t_in, t_step)
         if self.keep_metrics:
-            self._pending = (prep, self._flat_sol(res), x, res, *self.last_times)
-        self.qp_failed += res.fallback == FALLBACK_FAILED
-        self.fallbacks += res.fallback == FALLBACK_RELAXED
-        self._last_u = np.array(u)
-        self._prev_t = t
-        return self._command(self._last_u, SolveStatus(int(res.status)),
-                             fallback_name(res.fallback), "ok", t_in)
+            self._pending = (prep, sols[0], x[0] if usable[0] else None, res,
+                             *self.last_times)
+        return cmds[0]
+
+    def _hold(self, prep, reason: str, t_in: float) -> Command:
+        """A step whose measurement was refused: no solve, the last good torque held, the
+        step concluded as one without a solution."""
+        self.last_times = (np.nan, np.nan)
+        if self.keep_metrics:
+            self._pending = (prep, self._no_sol, None, None, np.nan, np.nan)
+        return self._command(self._last_u, None, "held", reason, t_in)
+
+    @staticmethod
+    def _solve_lanes(lanes: list, packed, ts, t_in: float, t_step: float):
+        """The host side of a step for L lanes with accepted measurements (one robot: L =
+        1, ``_finish``), from the jitted prepare's packed QPs (leading axis L, numpy): each
+        lane's reduced QP by its own solver (``solvers.host.solve_lanes``), X = x0 + N u,
+        the usable test, the held-torque rule, the motor map and each lane's counters.
+        Returns (the Commands; the conclude's flat solve records (L, .); the SolveResult
+        (x over the full X, NaN where not usable; eq_residual of the full QP); X; usable)."""
+        lead = lanes[0]
+        qpm, red, rmap, checks = lead._unpack_qp(packed)
+        t1 = time.perf_counter()
+        res = host.solve_lanes([lane.solver for lane in lanes], red, checks)
+        x = reduce.expand(res.x, rmap)
+        usable = (res.fallback != FALLBACK_FAILED) & np.isfinite(x).all(axis=-1)
+        eq = np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b).max(axis=-1)
+        res = res._replace(x=x, eq_residual=eq)
+        if not usable.all():      # rare: failed()'s fields on those rows, with the
+            res = SolveResult(*(np.array(f) for f in res))   # solver's status, or
+            for i in np.flatnonzero(~usable).tolist():       # NUMERICAL for a non-finite X
+                status = (res.status[i] if res.fallback[i] == FALLBACK_FAILED
+                          else SolveStatus.NUMERICAL)
+                bad = failed(lead._nx, status)._replace(iterations=res.iterations[i])
+                for f, v in zip(res, bad):
+                    f[i] = v
+        t2 = time.perf_counter()
+        last_u = (lead._last_u[None] if len(lanes) == 1
+                  else np.stack([lane._last_u for lane in lanes]))
+        u = control_step.hold_torque(res.x, usable[:, None], last_u, qpm.blocks)
+        motor = lead.motors.arrays().to_motor(u)
+        sols = np.empty((len(lanes), lead._no_sol.size))      # _flat_sol's layout, by rows
+        sols[:, :lead._nx] = res.x
+        for k, f in enumerate(res[1:]):
+            sols[:, lead._nx + k] = f
+        times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6 / len(lanes))
+        t_out = (time.perf_counter() - t_in) * 1e6
+        cmds = []
+        for j, lane in enumerate(lanes):
+            fb = int(res.fallback[j])
+            lane.last_times, lane._last_qp = times, (qpm, j)
+            lane.qp_failed += fb == FALLBACK_FAILED
+            lane.fallbacks += fb == FALLBACK_RELAXED
+            lane._last_u, lane._prev_t = u[j], ts[j]
+            cmds.append(Command(u[j].copy(), motor[j], SolveStatus(int(res.status[j])),
+                                fallback_name(fb), "ok", t_out))
+        return cmds, sols, res, x, usable
 
     @staticmethod
     def admit_lanes(lanes: list, meas: list):
@@ -535,62 +570,27 @@ class Controller:
 
     @staticmethod
     def finish_lanes(lanes: list, prep, packed, reasons: list, ts, t_in: float):
-        """``_finish`` for several lanes of one compiled step (``lane``; ``sim.lockstep``),
-        from the rows of a vmapped prepare (``prep``, ``packed``: leading axis L): the
-        solver class's ``solve_lanes`` (``solvers.host``; PIQP's: per lane, accepted all at
-        once), then X = x0 + N u, the usable test, the held-torque rule and the motor map of
-        ``_finish`` over the leading axis (``tests/test_lockstep.py`` holds the two equal);
-        a lane whose measurement was refused, or whose solver is not of the first lane's
-        class or has no ``solve_lanes``, runs ``_finish``.
-        ``ts``: the measurements' times. Returns (the Commands, the solve results as the
-        conclude's flat vectors (L, .)); no conclude is left pending (the caller runs it,
-        vmapped), and ``last_qp`` is not kept."""
-        L, lead = len(lanes), lanes[0]
-        sols = np.tile(lead._no_sol, (L, 1))
-        cmds = [None] * L
-        kind, together = type(lead.solver), host.solves_lanes(lead.solver)
-        batched = np.array([together and r == "ok" and type(lane.solver) is kind
-                            for r, lane in zip(reasons, lanes)])
-        for i in np.flatnonzero(~batched).tolist():
-            cmds[i] = lanes[i]._finish(prep[i], packed[i], reasons[i], ts[i], t_in, t_in)
-            if lanes[i]._pending is not None:
-                sols[i] = lanes[i]._pending[1]
+        """The host side of a step for several lanes of one compiled step (``lane``;
+        ``sim.lockstep``), from the rows of a vmapped prepare (``prep``, ``packed``:
+        leading axis L): the lanes whose measurement was accepted through
+        ``_solve_lanes`` together (one robot's step runs the same, L = 1), the others
+        hold their torque (``_hold``). ``ts``: the measurements' times. Returns (the
+        Commands, the solve records as the conclude's flat vectors (L, .)); no conclude is
+        left pending (the caller runs it, vmapped)."""
+        sols = np.tile(lanes[0]._no_sol, (len(lanes), 1))
+        cmds = [None] * len(lanes)
+        ok = np.array([r == "ok" for r in reasons])
+        for i in np.flatnonzero(~ok).tolist():
+            cmds[i] = lanes[i]._hold(prep[i], reasons[i], t_in)
             lanes[i]._pending = None
-        idx = np.flatnonzero(batched)
-        if not idx.size:
-            return cmds, sols
-        t1 = time.perf_counter()
-        qpm, red, rmap, checks = lead._unpack_qp(packed if idx.size == L else packed[idx])
-        res = kind.solve_lanes([lanes[i].solver for i in idx], red, checks)
-        x = reduce.expand(res.x, rmap)
-        usable = (res.fallback != FALLBACK_FAILED) & np.all(np.isfinite(x), axis=1)
-        eq = np.max(np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b), axis=1)
-        keep = lambda a, other: np.where(usable, a, other)   # noqa: E731 - else failed()'s
-        res = SolveResult(
-            x=np.where(usable[:, None], x, np.nan),
-            status=np.where(usable | (res.fallback == FALLBACK_FAILED), res.status,
-                            int(SolveStatus.NUMERICAL)),
-            fallback=keep(res.fallback, FALLBACK_FAILED),
-            relaxed_status=keep(res.relaxed_status, NOT_ATTEMPTED), iterations=res.iterations,
-            max_slack=keep(res.max_slack, np.nan), eq_residual=keep(eq, np.nan),
-            ineq_violation=keep(res.ineq_violation, np.nan),
-            hard_violation=keep(res.hard_violation, np.nan), polished=usable & res.polished,
-            polish_iterations=keep(res.polish_iterations, 0))
-        t2 = time.perf_counter()
-        last_u = np.stack([lanes[i]._last_u for i in idx])
-        u = control_step.hold_torque(res.x, usable[:, None], last_u, qpm.blocks)
-        motor = lead.motors.arrays().to_motor(u)
-        sols[idx] = np.concatenate([res.x, np.stack(res[1:], axis=1).astype(np.float64)], axis=1)
-        times = ((t1 - t_in) * 1e6, (t2 - t1) * 1e6 / idx.size)
-        t_out = (time.perf_counter() - t_in) * 1e6
-        for j, i in enumerate(idx.tolist()):
-            lane, fb = lanes[i], int(res.fallback[j])
-            lane.last_times, lane._pending = times, None
-            lane.qp_failed += fb == FALLBACK_FAILED
-            lane.fallbacks += fb == FALLBACK_RELAXED
-            lane._last_u, lane._prev_t = u[j], ts[i]
-            cmds[i] = Command(u[j].copy(), motor[j], SolveStatus(int(res.status[j])),
-                              fallback_name(fb), "ok", t_out)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            every = idx.size == len(lanes)
+            got, sols[idx], *_ = Controller._solve_lanes(
+                lanes if every else [lanes[i] for i in idx], packed if every else packed[idx],
+                ts if every else [ts[i] for i in idx], t_in, t_in)
+            for i, c in zip(idx.tolist(), got):
+                cmds[i] = c
         return cmds, sols
 
     # -- the lane API (sim.lockstep: lanes of one step, vmapped), with admit/finish_lanes

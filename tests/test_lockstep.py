@@ -97,7 +97,7 @@ def test_lockstep_lane_does_not_depend_on_its_neighbours(loop):
 def test_finish_lanes_is_finish_lane_by_lane(loop):
     """``Controller.finish_lanes`` (the lockstep's host side: PIQP per lane, the acceptance,
     expansion, held torque and motor map for all lanes at once) against each lane's own
-    ``_finish`` on the same rows of the vmapped prepare, with fresh solvers on both sides:
+    ``_finish`` (the same code with one lane) on the same rows of the vmapped prepare, with fresh solvers on both sides:
     a lane solved as posed, one whose QP needs the relaxed QP (a soft row no torque can
     meet), one that fails (a hard row no torque can meet: last torque held) and one whose
     measurement was refused. Commands, counters and statuses exactly; the solve records
@@ -145,7 +145,8 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     np.testing.assert_array_equal(cmds[2].u, np.full(ctl.model.nu, 0.5))
 
     # a user's solver of the solvers.host protocol with ``solve`` alone (no solve_lanes,
-    # lane or reset): its lanes take ``_finish`` one by one, with PIQP's outcome
+    # lane or reset): one ``solve`` per lane (``solvers.host.solve_lanes``), with PIQP's
+    # outcome
     from safewbc_jax.solvers import host
     from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
 

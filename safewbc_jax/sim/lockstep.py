@@ -9,10 +9,10 @@ them: the same jitted functions of ``deploy.Controller`` (its unjitted ``prepare
 (``SimRobot.sibling``: one MjModel, one MjData per lane). The host side of the step runs
 for all lanes at once where it is plain array arithmetic (``Controller.admit_lanes``: the
 measurement checks; ``Controller.finish_lanes``: the acceptance, X = x0 + N u, the
-held-torque rule, the motor map), with PIQP still one solve per lane by the lane's own
-solver (and, where a lane's QP as posed is not accepted, its relaxed QP likewise); a lane
-whose measurement is refused takes the single-robot ``_finish`` for that step. So a lane
-runs what ``mujoco_loop.rollout`` runs, step by step:
+held-torque rule, the motor map: the code a single robot's step runs with one lane), with
+PIQP still one solve per lane by the lane's own solver (and, where a lane's QP as posed
+is not accepted, its relaxed QP likewise); a lane whose measurement is refused holds its
+torque for that step. So a lane runs what ``mujoco_loop.rollout`` runs, step by step:
 
     measurement -> admit -> [prepare, vmapped] -> finish (PIQP per lane)
     -> [conclude, vmapped] -> push -> SimRobot.advance -> plant metrics -> fall test

@@ -11,14 +11,18 @@ needs ``solve`` alone.
                                              without it, a deep copy)
     solve_lanes(solvers, qp, checks)         optional, on the class: L QPs of one shape at
                                              once, row l as ``solvers[l].solve`` gives it
-                                             (``Controller.finish_lanes``; without it, one
-                                             ``solve`` per lane)
+                                             (without it, one ``solve`` per lane)
+
+The controller calls ``solve_lanes`` of this module for every step, one robot (L = 1) or
+the lanes of ``sim.lockstep``.
 """
 
 from __future__ import annotations
 
 import copy
 from typing import Protocol, runtime_checkable
+
+import numpy as np
 
 from safewbc_jax.qp_types import QP
 from safewbc_jax.solvers.result import SolveResult
@@ -51,3 +55,17 @@ def lane(solver):
 def solves_lanes(solver) -> bool:
     """Whether ``solver``'s class solves several lanes' QPs at once (``solve_lanes``)."""
     return callable(getattr(type(solver), "solve_lanes", None))
+
+
+def solve_lanes(solvers: list, qp: QP, checks) -> SolveResult:
+    """The QP of each lane l (``qp``'s and ``checks``' arrays with the leading axis L) by
+    its own solver ``solvers[l]``: the class's ``solve_lanes`` where all L solvers are of
+    one class that has it, else one ``solve`` per lane. Returns one SolveResult whose
+    fields are numpy arrays with the leading axis L."""
+    kind = type(solvers[0])
+    if solves_lanes(solvers[0]) and all(type(s) is kind for s in solvers):
+        return kind.solve_lanes(solvers, qp, checks)
+    rows = [s.solve(qp.with_arrays(lambda a: a[i]), checks=type(checks)(*(c[i] for c in checks)))
+            for i, s in enumerate(solvers)]
+    return SolveResult(*(np.stack([np.asarray(getattr(r, f)) for r in rows])
+                         for f in SolveResult._fields))

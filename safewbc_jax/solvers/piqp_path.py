@@ -59,8 +59,8 @@ from safewbc_jax.qp_types import FIELDS, QP
 from safewbc_jax.solvers import policy
 from safewbc_jax.solvers.policy import Attempt
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN, relax_soft_rows_np
-from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, NOT_ATTEMPTED,
-                                        SolveResult)
+from safewbc_jax.solvers.result import (FALLBACK_NONE, NOT_ATTEMPTED,
+                                        SolveResult, row)
 from safewbc_jax.solvers.status import SolveStatus
 
 _PIQP_STATUS = {
@@ -251,24 +251,21 @@ class PiqpSolver:
         return solve_lanes(solvers, qp, checks)
 
     def solve(self, qp: QP, initvals=None, checks: policy.Checks | None = None) -> SolveResult:
-        """The policy's outcome for ``qp`` (class docstring). ``checks``: ``policy.checks``
-        of this QP computed before (the deployment's jitted step does); qp's arrays must
-        then be float64 numpy already (they are not converted), and the acceptance of the
-        QP as posed uses them (``policy.residuals_checked``)."""
+        """The policy's outcome for ``qp`` (class docstring): ``solve_lanes`` with this one
+        solver, as the deployed controller calls it (one robot is one lane). ``checks``:
+        ``policy.checks`` of this QP computed before (the deployment's jitted step does);
+        qp's arrays must then be float64 numpy already (they are not converted); without
+        them they are computed here. ``initvals``: accepted and ignored (PIQP's
+        interfaces ignore it: module docstring)."""
+        del initvals
         t0 = time.perf_counter_ns()
         if checks is None:
             qp = qp_to_numpy(qp)
-        n, mi = qp.P.shape[0], qp.G.shape[0]
-        x, status, iters = self._solve_nominal(qp, initvals)       # (a) the QP as posed
-        status, res = policy.accept(x, qp, status, self.feas_tol, np, checks=checks)
-        nom = Attempt(x=x, status=status, res=res, max_slack=0.0, iterations=iters,
-                      polished=False, polish_iterations=0)
-        # accepted: nothing to relax (``finish`` without a relaxed attempt gives the same
-        # result then, relaxed_status NOT_ATTEMPTED); else (b), then (c) if that fails
-        rel = None if status == SolveStatus.SOLVED else self._solve_relaxed(qp, n, mi)
-        out = policy.finish(nom, rel, np)
+            checks = policy.checks(qp)
+        one = solve_lanes([self], qp.with_arrays(lambda a: a[None]),
+                          policy.Checks(*(np.asarray(c)[None] for c in checks)))
         self.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
-        return out
+        return row(one, 0)
 
     def _solve_nominal(self, qp: QP, initvals=None):
         """(a): PIQP on the QP as posed: (x, all NaN where PIQP gave none; its status;
@@ -319,16 +316,14 @@ def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
         s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
     tol = np.array([s.feas_tol for s in solvers])
     status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)
-    ok = status == SolveStatus.SOLVED
-    nan = np.full(L, np.nan)
+    ok = status == int(SolveStatus.SOLVED)
+    # the accepted QPs' fields; each other row is set whole below
     out = SolveResult(
-        x=np.where(ok[:, None], X, np.nan), status=status,
-        fallback=np.where(ok, FALLBACK_NONE, FALLBACK_FAILED),
-        relaxed_status=np.full(L, NOT_ATTEMPTED), iterations=iters,
-        max_slack=np.where(ok, 0.0, np.nan), eq_residual=np.where(ok, eq, nan),
-        ineq_violation=np.where(ok, ineq, nan), hard_violation=np.where(ok, hard, nan),
-        polished=np.zeros(L, bool), polish_iterations=np.zeros(L, np.int64))
-    for l in np.flatnonzero(~ok).tolist():       # (b), then (c): per QP, rare
+        x=X, status=status, fallback=np.full(L, FALLBACK_NONE),
+        relaxed_status=np.full(L, NOT_ATTEMPTED), iterations=iters, max_slack=np.zeros(L),
+        eq_residual=eq, ineq_violation=ineq, hard_violation=hard, polished=np.zeros(L, bool),
+        polish_iterations=np.zeros(L, np.int64))
+    for l in ([] if ok.all() else np.flatnonzero(~ok).tolist()):   # (b), then (c): rare
         s, t0 = solvers[l], time.perf_counter_ns()
         nom = Attempt(x=X[l], status=int(status[l]), res=(eq[l], ineq[l], hard[l]),
                       max_slack=0.0, iterations=int(iters[l]), polished=False,

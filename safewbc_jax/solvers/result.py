@@ -56,6 +56,17 @@ class SolveResult(NamedTuple):
     polish_iterations: Any
 
 
+def row(res: SolveResult, i: int) -> SolveResult:
+    """Row ``i`` of a host SolveResult of arrays (leading axis L) as one QP's: x a numpy
+    row, the other fields plain Python values, status a SolveStatus."""
+    return SolveResult(
+        x=res.x[i], status=SolveStatus(int(res.status[i])), fallback=int(res.fallback[i]),
+        relaxed_status=int(res.relaxed_status[i]), iterations=int(res.iterations[i]),
+        max_slack=float(res.max_slack[i]), eq_residual=float(res.eq_residual[i]),
+        ineq_violation=float(res.ineq_violation[i]), hard_violation=float(res.hard_violation[i]),
+        polished=bool(res.polished[i]), polish_iterations=int(res.polish_iterations[i]))
+
+
 def failed(n: int, status=SolveStatus.NUMERICAL) -> SolveResult:
     """A host-side FAILED result over n variables (x all NaN): what a loop records where
     there is no usable solution, e.g. for a refused measurement."""
@@ -71,5 +82,5 @@ def fallback_name(code) -> str:
     return FALLBACK_NAMES[int(code)]
 
 
-__all__ = ["SolveResult", "FALLBACK_NONE", "FALLBACK_RELAXED", "FALLBACK_FAILED",
+__all__ = ["SolveResult", "row", "FALLBACK_NONE", "FALLBACK_RELAXED", "FALLBACK_FAILED",
            "FALLBACK_NAMES", "NOT_ATTEMPTED", "failed", "fallback_name"]
