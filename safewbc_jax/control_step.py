@@ -70,16 +70,24 @@ class Measurement:
     sole_force: np.ndarray | None = None
 
 
-def state_ok(q, v, xp=np):
-    """True where (q, v) can be a state of the robot: finite, the base quaternion of unit
-    length within QUAT_TOL, every angular rate within MAX_RATE and the base speed within
-    MAX_SPEED (a NaN fails every comparison). Leading axes of q and v are a batch of
-    states (``sim.lockstep`` tests its lanes in one call); the result has those axes."""
+def state_tests(q, v, xp=np):
+    """The tests a robot state (q, v) must pass, each True where it does: (finite, the
+    base quaternion of unit length within QUAT_TOL, the base speed within MAX_SPEED, every
+    angular rate within MAX_RATE); a NaN fails every comparison. Leading axes of q and v
+    are a batch of states (``sim.lockstep`` tests its lanes in one call); the results
+    have those axes. ``deploy.check_state`` names the first that fails."""
     n2 = xp.sum(q[..., 3:7] ** 2, axis=-1)
-    return (xp.isfinite(xp.sum(q, axis=-1)) & xp.isfinite(xp.sum(v, axis=-1))
-            & (xp.abs(xp.sqrt(n2) - 1.0) <= QUAT_TOL)
-            & (xp.sum(v[..., :3] ** 2, axis=-1) <= MAX_SPEED ** 2)
-            & (xp.max(xp.abs(v[..., 3:]), axis=-1) <= MAX_RATE))
+    return (xp.isfinite(xp.sum(q, axis=-1)) & xp.isfinite(xp.sum(v, axis=-1)),
+            xp.abs(xp.sqrt(n2) - 1.0) <= QUAT_TOL,
+            xp.sum(v[..., :3] ** 2, axis=-1) <= MAX_SPEED ** 2,
+            xp.max(xp.abs(v[..., 3:]), axis=-1) <= MAX_RATE)
+
+
+def state_ok(q, v, xp=np):
+    """True where (q, v) passes every test of ``state_tests``: can be a state of the
+    robot. Leading axes: a batch, as there."""
+    finite, unit, speed, rates = state_tests(q, v, xp)
+    return finite & unit & speed & rates
 
 
 def fallen(q, v, xp=np):
@@ -232,8 +240,8 @@ class Prepared(NamedTuple):
     t_rel: jax.Array
     tau: jax.Array
     gait: walking.GaitState
-    domain: dict | None
-    aux: dict
+    domain: walking.Domain | None
+    aux: controller.QPAux
 
 
 def prepare(ctx: Context, params, start, run: RunValues, state: ControllerState,
@@ -320,14 +328,14 @@ def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: So
     # lambda: the chain rows' forces first, then the contacts' (controller.build_qp)
     lam = jnp.where(usable, ctx.blocks.split(x)[2][controller.n_chain_rows(model):], jnp.nan)
     domain = prep.domain
-    in_contact = domain["in_contact"] if domain is not None else jnp.asarray(sc.in_contact)
+    in_contact = domain.in_contact if domain is not None else jnp.asarray(sc.in_contact)
     margin = contacts.zmp_margin(model, prep.q, jnp.where(usable, lam, 0.0),
                                  jnp.asarray(in_contact, prep.q.dtype))
     margin = jnp.where(usable, margin, jnp.nan)
     mask = sc.masks(domain)
-    y = {n: ya for n, (ya, _) in prep.aux["outputs"].items()}
+    y = {n: ya for n, (ya, _) in prep.aux.outputs.items()}
     yd = {n: jnp.where(mask[n] > 0, yd_, jnp.nan) if n in mask else yd_
-          for n, (_, yd_) in prep.aux["outputs"].items()}
+          for n, (_, yd_) in prep.aux.outputs.items()}
     zero = jnp.zeros((), prep.q.dtype)
     rec = StepRecord(ok=prep.ok, tau=prep.tau, status=jnp.asarray(sol.status, jnp.int32),
                      fallback=jnp.asarray(sol.fallback, jnp.int32),
@@ -335,7 +343,7 @@ def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: So
                      eq_residual=jnp.where(usable, sol.eq_residual, jnp.nan), u=u, lam=lam,
                      zmp_margin=margin, stance=prep.gait.stance if ctx.walking else zero,
                      stance0=prep.gait.stance0, missed=prep.gait.missed, y=y, yd=yd,
-                     h=dict(prep.aux["barrier_h"]))
+                     h=dict(prep.aux.barrier_h))
     acc = metrics.control_accumulate(tally.acc, rec, prep.t_rel, run.t_half,
                                      jnp.asarray(model.torque_limit), xp=jnp)
     return Tally(u, acc), Output(u, ctx.motors.to_motor(u, jnp), rec)

@@ -20,6 +20,14 @@ from safewbc_jax import barriers, chains, contacts, qp, robot
 from safewbc_jax.params import ControllerParams
 
 
+class QPAux(NamedTuple):
+    """What ``build_qp`` evaluated beside the QP, for the step's record: per output name
+    (y^a, y^d) (eq. 10's two sides), per barrier name its h (eq. 20)."""
+
+    outputs: dict
+    barrier_h: dict
+
+
 class Terms(NamedTuple):
     M: jax.Array
     h: jax.Array
@@ -89,13 +97,13 @@ def n_chain_rows(model) -> int:
 
 def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau, start,
              in_contact, barrier_on=True, domain=None):
-    """QP matrices of one control step and an info dict (output errors, barrier values).
+    """QP matrices of one control step and its ``QPAux`` (outputs and references, barrier values).
 
     ``domain`` (walking): the gait state (stance side, step time, feet at step start,
     commands) as data, so one compiled function serves every domain; its ``in_contact``
     replaces the argument."""
     if domain is not None:
-        in_contact = domain["in_contact"]
+        in_contact = domain.in_contact
     desired = scenario.desired_at(model, tau, start, q, v, domain)
     mask = scenario.masks(domain)
     jac, drift, ystar, w, err = [], [], [], [], {}
@@ -159,7 +167,7 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
                       contact_rows=contact_rows, in_contact_rows=in_rows, task_P=task_p,
                       task_q=task_q, gamma=gamma, G_lambda=g_full, h_lambda=h_lam,
                       soft_lambda=soft_lam, barrier_rows=brow, barrier_b=bb, u_max=u_max)
-    return qpm, {"outputs": err, "barrier_h": hvals}
+    return qpm, QPAux(err, hvals)
 
 
 def output_start_values(model, scenario, q):

@@ -36,7 +36,7 @@ from safewbc_jax.solvers.status import SolveStatus
 
 # the measurement bounds and the fall test are the control step's (one definition)
 from safewbc_jax.control_step import (FALL_HEIGHT, MAX_RATE, MAX_SPEED, QUAT_TOL,  # noqa: E402,F401
-                                      Measurement, fallen, state_ok)
+                                      Measurement, fallen, state_ok, state_tests)
 
 
 @functools.partial(jax.tree_util.register_dataclass,
@@ -116,22 +116,22 @@ class MotorMap:
 
 def check_state(q, v, nq: int, nv: int) -> str:
     """"ok", or why (q, v) is no state of the robot with ``nq`` positions and ``nv``
-    velocities (the controller model's: shapes, NaN/inf, a quaternion off unit length by
-    more than QUAT_TOL, rates above MAX_RATE or a base speed above MAX_SPEED)."""
-    if np.shape(q) == (nq,) and np.shape(v) == (nv,) and state_ok(q, v):
-        return "ok"     # the control step's own test (a few us); below: which one failed
+    velocities: a shape, or the first of the control step's ``state_tests`` that fails
+    (NaN/inf, quaternion norm, base speed, rates), with its values."""
     for name, x, n in (("q", q, nq), ("v", v, nv)):
         if np.shape(x) != (n,):
             return f"{name} has shape {np.shape(x)}, expected ({n},)"
-        if not np.all(np.isfinite(x)):
-            return f"{name} not finite at {np.flatnonzero(~np.isfinite(x)).tolist()}"
-    nq = float(np.linalg.norm(q[3:7]))
-    if abs(nq - 1.0) > QUAT_TOL:
-        return f"base quaternion |q| = {nq:.6g}, not unit (tolerance {QUAT_TOL:g})"
-    if np.linalg.norm(v[:3]) > MAX_SPEED:
+    finite, unit, speed, rates = (bool(t) for t in state_tests(q, v))
+    if not finite:
+        name, x = ("q", q) if not np.all(np.isfinite(q)) else ("v", v)
+        return f"{name} not finite at {np.flatnonzero(~np.isfinite(x)).tolist()}"
+    if not unit:
+        return (f"base quaternion |q| = {np.linalg.norm(q[3:7]):.6g}, not unit (tolerance "
+                f"{QUAT_TOL:g})")
+    if not speed:
         return f"base speed {np.linalg.norm(v[:3]):.4g} m/s above {MAX_SPEED:g} m/s"
-    k = int(np.argmax(np.abs(v[3:])))
-    if abs(v[3 + k]) > MAX_RATE:
+    if not rates:
+        k = int(np.argmax(np.abs(v[3:])))
         return f"rate {v[3 + k]:.4g} rad/s at dof {3 + k}, above {MAX_RATE:g} rad/s"
     return "ok"
 
@@ -180,7 +180,7 @@ class HostRecord:
     step: object
     q: np.ndarray
     v: np.ndarray
-    domain: dict | None
+    domain: object          # walking.Domain, or None
     x: np.ndarray | None
     solve: object
     t_qp: float

@@ -64,12 +64,13 @@ def sim_loop_residual(ms, d, pairs=None) -> float:
     return float(loop_residual(d.site_xpos, loop_site_pairs(ms) if pairs is None else pairs))
 
 
-def loop_residual(site_xpos, pairs):
+def loop_residual(site_xpos, pairs, xp=np):
     """``sim_loop_residual`` from the sites' world positions (..., nsite, 3); leading axes
-    are a batch (``sim.lockstep``'s lanes) and stay in the result."""
+    are a batch (``sim.lockstep``'s lanes) and stay in the result. ``xp``: numpy (the C
+    MuJoCo loops) or jax.numpy (the MJX rollout)."""
     tips, anchors = pairs
     gap = site_xpos[..., tips, :] - site_xpos[..., anchors, :]
-    return np.sqrt((gap * gap).sum(axis=-1).max(axis=-1))
+    return xp.sqrt((gap * gap).sum(axis=-1).max(axis=-1))
 
 
 def format_info(info: dict) -> str:

@@ -10,7 +10,7 @@ A ``SafeSet`` carries everything a scenario needs of one barrier:
 * ``h``: ``h(model, q, threshold, domain)`` (relative degree 2, a function of the
   configuration) or ``h(model, q, v, threshold, domain)`` (relative degree 1, of the
   state); ``threshold`` is a parameter (``ControllerParams.threshold[name]``) so that it
-  can be swept, ``domain`` is the gait's domain dict in walking scenarios (None else);
+  can be swept, ``domain`` is the gait's ``walking.Domain`` in walking scenarios (None else);
 * its default ``poles`` (p_1..p_r > 0) and ``threshold``;
 * ``active(domain) -> 0/1``: where the row is enforced (None: always);
 * ``check_domain(model, q) -> domain``: where Theorem 1 is checked for a barrier that is

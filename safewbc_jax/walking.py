@@ -42,7 +42,7 @@ What differs from the paper's printed task, and why (measured in MuJoCo on this 
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -97,7 +97,7 @@ def check_speed(speed, option: str = "speed") -> float:
 
 def _swing_select(domain, left_val, right_val):
     """The swing foot's value: in left stance the right foot swings."""
-    stance = domain["stance"]
+    stance = domain.stance
     return jnp.where(stance > 0, right_val, left_val)
 
 
@@ -187,7 +187,7 @@ def _heading_lateral(model, q, domain):
     signed positive when the feet are apart (either stance side)."""
     pl = robot.frame_pose(model, q, "left-sole")[0]
     pr = robot.frame_pose(model, q, "right-sole")[0]
-    d = alip.world_to_heading((pl - pr)[:2], domain["heading"])  # left foot from right
+    d = alip.world_to_heading((pl - pr)[:2], domain.heading)  # left foot from right
     return d[1]  # > 0 when the left foot is to the left of the right one
 
 
@@ -205,12 +205,12 @@ def swing_clearance_terms(model, kin, motion, threshold, domain):
     pl, jl, al = robot.site_point_terms(model, kin, motion, "left-sole")
     pr, jr, ar = robot.site_point_terms(model, kin, motion, "right-sole")
     eye = jnp.eye(2, dtype=pl.dtype)
-    c = alip.world_to_heading(eye, domain["heading"])[:, 1]     # d_y = c . (p_l - p_r)_xy
+    c = alip.world_to_heading(eye, domain.heading)[:, 1]     # d_y = c . (p_l - p_r)_xy
     return c @ (pl - pr)[:2] - threshold, c @ (jl - jr)[:2], c @ (al - ar)[:2]
 
 
 def _single_support(domain):
-    return jnp.abs(domain["stance"])
+    return jnp.abs(domain.stance)
 
 
 def swing_barrier():
@@ -225,23 +225,23 @@ def passive_actuators(model, domain):
     """1 for the stance leg's ankle motors (toe-A, toe-B): the passive stance ankle."""
     left = np.array([n in ("left-toe-A", "left-toe-B") for n in model.actuator_names], float)
     right = np.array([n in ("right-toe-A", "right-toe-B") for n in model.actuator_names], float)
-    stance = domain["stance"]
+    stance = domain.stance
     return jnp.where(stance > 0, left, 0.0) + jnp.where(stance < 0, right, 0.0)
 
 
 def plan_step(model, q, v, domain):
     """(ALIP state about the stance sole, the planner's FootPlacement, the step vector u
     [2] clipped to the leg's reach), heading frame, from the measured state."""
-    heading = domain["heading"]
-    stance = domain["stance"]
+    heading = domain.heading
+    stance = domain.stance
     pl = robot.frame_pose(model, q, "left-sole")[0]
     pr = robot.frame_pose(model, q, "right-sole")[0]
     contact = jnp.where(stance > 0, pl, pr)
     state = alip.alip_state_from_robot(model, q, v, contact, heading)
     mass = jnp.sum(model.body_mass)
     side = jnp.where(stance == 0, 1.0, stance)  # +1: the swing foot goes to the right (-y)
-    plan = alip.plan_foot_placement(state.p, state.L, domain["tau_step"], STEP_T, H_WALK, mass,
-                                    -model.gravity[2], domain["v_des"], domain["step_width"],
+    plan = alip.plan_foot_placement(state.p, state.L, domain.tau_step, STEP_T, H_WALK, mass,
+                                    -model.gravity[2], domain.v_des, domain.step_width,
                                     side, average_velocity=True)
     u = jnp.stack([jnp.clip(plan.u[0], *STEP_X),
                    -side * jnp.clip(-side * plan.u[1], *STEP_Y)])
@@ -253,8 +253,8 @@ def diagnostics(model, q, v, domain):
     planned step u [2] (clipped), the predicted end-of-step p_end [2] and L_end [2]."""
     state, plan, u = plan_step(model, q, v, domain)
     mom = alip.robot_momentum(model, q, v, jnp.zeros(3))
-    lcom = alip.world_to_heading(alip.alip_momentum(mom.L_com), domain["heading"])
-    vcom = alip.world_to_heading(mom.com_vel[:2], domain["heading"])
+    lcom = alip.world_to_heading(alip.alip_momentum(mom.L_com), domain.heading)
+    vcom = alip.world_to_heading(mom.com_vel[:2], domain.heading)
     return jnp.concatenate([state.p, state.L, state.z[None], u, plan.p_end, plan.L_end, lcom,
                             vcom, mom.com_vel[2:3]])
 
@@ -283,7 +283,7 @@ def _com_reference(model, tau, start, q, v, domain):
 def _heading_reference(model, tau, start, q, v, domain):
     """Level, facing the heading (the torso; the swing sole kept flat)."""
     zero3 = jnp.zeros(3)
-    return jnp.array([0.0, 0.0, 1.0]) * domain["heading"], zero3, zero3
+    return jnp.array([0.0, 0.0, 1.0]) * domain.heading, zero3, zero3
 
 
 def _arms_reference(model, tau, start, q, v, domain):
@@ -292,12 +292,12 @@ def _arms_reference(model, tau, start, q, v, domain):
 
 def _swing_reference(model, tau, start, q, v, domain):
     """The swing sole towards the ALIP foot placement planned from (q, v)."""
-    heading = domain["heading"]
+    heading = domain.heading
     _, _, u = plan_step(model, q, v, domain)
-    p_sw0 = alip.world_to_heading((domain["swing0"] - domain["stance0"])[:2], heading)
-    sw = alip.swing_foot_reference(domain["tau_step"], STEP_T, p_sw0, u, z0=0.0,
+    p_sw0 = alip.world_to_heading((domain.swing0 - domain.stance0)[:2], heading)
+    sw = alip.swing_foot_reference(domain.tau_step, STEP_T, p_sw0, u, z0=0.0,
                                    vertical="land", horizontal=SWING_HORIZONTAL)
-    base = domain["stance0"]
+    base = domain.stance0
     rot = lambda xy: alip.rotate_yaw(xy, heading)  # noqa: E731
     pos = jnp.concatenate([base[:2] + rot(sw.pos[:2]), base[2:3] + sw.pos[2:3]])
     vel = jnp.concatenate([rot(sw.vel[:2]), sw.vel[2:3]])
@@ -391,13 +391,28 @@ def gait_step(g: GaitState, tau, dt, sole_left, sole_right, swing_force, weight,
     return new, begin
 
 
-def gait_domain(g: GaitState, heading, v_des, step_width, xp=np):
-    """The controller's domain dict of a gait state (``controller.build_qp``): contact
-    flags from the stance side, and the commands."""
+class Domain(NamedTuple):
+    """The walking domain a control step's QP is built in (``controller.build_qp``): the
+    gait state's stance side (+1 left, -1 right, 0 double support), its contact flags
+    (left, right), the time into the step, the stance and swing soles' positions at the
+    step's start, and the commands (heading, mean speed, step width)."""
+
+    stance: Any
+    in_contact: Any
+    tau_step: Any
+    stance0: Any
+    swing0: Any
+    heading: Any
+    v_des: Any
+    step_width: Any
+
+
+def gait_domain(g: GaitState, heading, v_des, step_width, xp=np) -> Domain:
+    """The controller's ``Domain`` of a gait state: contact flags from the stance side,
+    and the commands."""
     ic = xp.stack([xp.where(g.stance < 0, 0.0, 1.0), xp.where(g.stance > 0, 0.0, 1.0)])
-    return {"stance": g.stance, "in_contact": ic, "tau_step": g.tau_step,
-            "stance0": g.stance0, "swing0": g.swing0, "heading": heading, "v_des": v_des,
-            "step_width": step_width}
+    return Domain(stance=g.stance, in_contact=ic, tau_step=g.tau_step, stance0=g.stance0,
+                  swing0=g.swing0, heading=heading, v_des=v_des, step_width=step_width)
 
 
 def walking_start(model, q, start, blend) -> dict:
@@ -481,7 +496,7 @@ class AlipGait:
 
     def controller_velocity(self, model, q, v, domain):
         """The rates the controller sees: the swing leg's springs held rigid."""
-        return rigid_spring_velocity(model, q, v, domain["stance"])
+        return rigid_spring_velocity(model, q, v, domain.stance)
 
     def passive_actuators(self, model, domain):
         return passive_actuators(model, domain)

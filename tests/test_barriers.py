@@ -369,7 +369,8 @@ def test_closed_form_terms_equal_the_rows_by_automatic_differentiation(rm, robot
         motion = robot.body_motion(rm, kin, v)
         out = []
         for b, dom in cases:
-            dom = None if dom is None else {"heading": heading * (dom["heading"] != 0)}
+            dom = None if dom is None else walking.Domain(*[None] * 8)._replace(
+                heading=heading * (dom["heading"] != 0))
             thr = b.threshold
             closed = bf.aecbf_row_from_terms(*b.terms(rm, kin, motion, thr, dom), v, poles)
             ad = bf.aecbf_row(b.h_fn(rm, thr, dom), q, v, poles, 2)

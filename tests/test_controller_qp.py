@@ -106,7 +106,7 @@ def test_barrier_row_in_the_qp(arms_qp, rm, ctrl_mj):
     t, f = ctrl_mj.site("torso").id, ctrl_mj.site("left-fist").id
     pz = (d.site_xmat[t].reshape(3, 3).T @ (d.site_xpos[f] - d.site_xpos[t]))[2]
     h = -pz - scenarios.ARM_THRESHOLD
-    assert float(aux["barrier_h"]["left_fist"]) == pytest.approx(h, abs=1e-12)
+    assert float(aux.barrier_h["left_fist"]) == pytest.approx(h, abs=1e-12)
     row = -qpm.G[-1, :rm.nv]
     assert np.abs(qpm.G[-1, rm.nv:]).max() == 0.0
     assert np.linalg.norm(row) > 0.1  # the fist moves with the arm joints

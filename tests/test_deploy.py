@@ -88,6 +88,32 @@ def test_check_state_names_the_reason(stand, ctrl_mj):
     assert deploy.check_state(q, vb, *sizes) == "ok"
 
 
+def test_check_state_refuses_exactly_what_the_step_refuses(stand):
+    """The host's reason and the jitted step's test are one definition (``state_tests``):
+    "ok" exactly where ``state_ok`` holds, also at the bounds' last bits, where a test
+    written twice (|v| > MAX_SPEED against |v|^2 <= MAX_SPEED^2) can disagree."""
+    q0, v0 = stand
+    rng = np.random.default_rng(3)
+    seen = set()
+    for i in range(600):
+        q, v = q0.copy(), v0.copy()
+        kind = i % 4
+        if kind == 0:                                # the quaternion's norm at 1 +- QUAT_TOL
+            q[3:7] *= 1 + deploy.QUAT_TOL * rng.choice([-1, 1]) * (1 + rng.normal() * 1e-12)
+        elif kind == 1:                              # the base speed at MAX_SPEED
+            d = rng.normal(size=3)
+            v[:3] = d / np.linalg.norm(d) * deploy.MAX_SPEED * (1 + rng.normal() * 1e-15)
+        elif kind == 2:                              # one rate at MAX_RATE
+            v[3 + rng.integers(v.size - 3)] = deploy.MAX_RATE * (1 + rng.normal() * 1e-15)
+        else:                                        # a NaN or inf somewhere
+            (q if rng.random() < 0.5 else v)[rng.integers(30)] = rng.choice([np.nan, np.inf])
+        ok = bool(deploy.state_ok(q, v))
+        reason = deploy.check_state(q, v, q.size, v.size)
+        assert (reason == "ok") is ok, (i, reason)
+        seen.add((kind, ok))
+    assert seen >= {(0, True), (0, False), (1, True), (1, False), (2, True), (2, False), (3, False)}
+
+
 def test_controller_refuses_bad_options_and_start_states(stand):
     with pytest.raises(ValueError, match="settle"):
         Controller("squat", settle=0.5)

@@ -38,7 +38,7 @@ def _euler_zyx(r):
 
 def _domain(stance, heading=0.0):
     g = walking.Gait(stance=stance, heading=heading)
-    return {k: jnp.asarray(v) for k, v in g.domain().items()}
+    return jax.tree_util.tree_map(jnp.asarray, g.domain())
 
 
 @pytest.mark.parametrize("stance", [LEFT, pytest.param(RIGHT, marks=pytest.mark.slow)])
@@ -94,7 +94,7 @@ def _qp_for(rm, ctrl_mj, stance, tau=0.1):
     start["settle"], start["blend"] = jnp.asarray(1.5), jnp.asarray(1.0)
     start["half_width"] = jnp.asarray(0.11)
     dom = _domain(stance)
-    dom["tau_step"] = jnp.asarray(tau)
+    dom = dom._replace(tau_step=jnp.asarray(tau))
     terms = controller.robot_terms(rm, sc, q, v, dom)
     return controller.build_qp(rm, sc, params, terms, q, v, jnp.asarray(tau), start,
                                jnp.ones(2), domain=dom)
@@ -127,7 +127,7 @@ def test_domain_sets_contacts_and_passive_stance_ankle_in_the_qp(ctrl_mj, rm, st
             else:
                 assert np.all(c_rows[r, :nv] == 0.0) and c_rows[r, lam_col] == 1.0
     # the swing output tracks the foot opposite the stance (BOTH: weight zero)
-    ya, yd = info["outputs"]["swing_pos"]
+    ya, yd = info.outputs["swing_pos"]
     sites = _mj_sites(ctrl_mj, ctrl_mj.key_qpos[0])
     if stance != BOTH:
         swing = "right" if stance == LEFT else "left"
@@ -142,11 +142,11 @@ def test_gait_switches_domains_and_swaps_feet():
     g = walking.Gait()
     soles = {"left": np.array([0.0, 0.1, 0.0]), "right": np.array([0.0, -0.1, 0.0])}
     assert not g.update(-0.01, 1e-3, soles, 0.0, w) and g.stance == BOTH
-    assert tuple(g.domain()["in_contact"]) == (1.0, 1.0)
+    assert tuple(g.domain().in_contact) == (1.0, 1.0)
     assert g.update(0.0, 1e-3, soles, 0.0, w)  # walking starts in left stance
     dom = g.domain()
-    assert g.stance == LEFT and tuple(dom["in_contact"]) == (1.0, 0.0)
-    assert np.allclose(dom["stance0"], soles["left"]) and np.allclose(dom["swing0"], soles["right"])
+    assert g.stance == LEFT and tuple(dom.in_contact) == (1.0, 0.0)
+    assert np.allclose(dom.stance0, soles["left"]) and np.allclose(dom.swing0, soles["right"])
     dt = 1e-3
     n = 0
     # a strong contact before T/2 (a scuff at lift-off) does not end the step
@@ -160,8 +160,8 @@ def test_gait_switches_domains_and_swaps_feet():
     assert g.update(0.1, dt, landed, 0.3 * w, w)
     dom = g.domain()
     assert g.stance == RIGHT and g.steps == 1 and g.tau_step == 0.0
-    assert tuple(dom["in_contact"]) == (0.0, 1.0)
-    assert np.allclose(dom["stance0"], landed["right"]) and np.allclose(dom["swing0"], landed["left"])
+    assert tuple(dom.in_contact) == (0.0, 1.0)
+    assert np.allclose(dom.stance0, landed["right"]) and np.allclose(dom.swing0, landed["left"])
     # from T on, any contact above TOUCH_FORCE ends the step
     g.tau_step = T
     assert not g.update(0.1, dt, landed, 0.5 * walking.TOUCH_FORCE, w)

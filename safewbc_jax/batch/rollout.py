@@ -50,7 +50,8 @@ from safewbc_jax.chunking import ByPlatform, check_chunk, chunked, resolve_chunk
 from safewbc_jax.control_step import Measurement
 from safewbc_jax.deploy import MotorMap
 from safewbc_jax.mjx_import import import_mjx
-from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
+from safewbc_jax.modelinfo import (control_substeps, foot_contact_ids, loop_residual,
+                                   loop_site_pairs)
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
 from safewbc_jax import safesets, userfile
@@ -381,7 +382,7 @@ def _step(pl: Plant, run: Run, params, push: Push, carry: Carry, k):
     dx_new = _physics(pl, carry.dx, out.motor, push, rec.tau)
     meas, legs = _sense(pl, dx_new, (k + 1) * pl.cfg.control_dt)
     sites = dx_new.site_xpos.astype(jnp.float64)
-    loop = jnp.max(jnp.linalg.norm(sites[pl.tip_sites] - sites[pl.anchor_sites], axis=-1))
+    loop = loop_residual(sites, (pl.tip_sites, pl.anchor_sites), jnp)
     plant = metrics.plant_accumulate(carry.plant, live, rec, sites[pl.sole_sites], pl.sole0_xy,
                                      loop, legs, xp=jnp)
     fell_now = live & control_step.fallen(meas.q, meas.v, jnp)

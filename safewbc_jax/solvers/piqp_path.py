@@ -247,8 +247,41 @@ class PiqpSolver:
 
     @staticmethod
     def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
-        """``solve_lanes`` of this module (``solvers.host``: several lanes at once)."""
-        return solve_lanes(solvers, qp, checks)
+        """The policy's outcome for L QPs of one shape, each with its own ``PiqpSolver``
+        (``solvers[l]``; one robot: L = 1, ``solve``; the lanes of ``sim.lockstep``): PIQP
+        solves each QP as posed, the acceptance of all L runs at once
+        (``policy.accept_batch``), and the relaxed QP (b) is solved, per QP, only where the
+        QP as posed failed. ``qp`` and ``checks``: float64 numpy arrays with the leading axis
+        L. Returns one SolveResult whose fields are numpy arrays with the leading axis L; a
+        row does not depend on the other QPs (``tests/test_lockstep.py``)."""
+        L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
+        X = np.empty((L, n))
+        status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
+        P, q, A, b, G, h, lb, ub, soft = qp.arrays()
+        rows = [QP(P[l], q[l], A[l], b[l], G[l], h[l], lb[l], ub[l], soft[l]) for l in range(L)]
+        for l, s in enumerate(solvers):
+            t0 = time.perf_counter_ns()
+            X[l], status[l], iters[l] = s._solve_nominal(rows[l])
+            s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
+        tol = np.array([s.feas_tol for s in solvers])
+        status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)
+        ok = status == int(SolveStatus.SOLVED)
+        # the accepted QPs' fields; each other row is set whole below
+        out = SolveResult(
+            x=X, status=status, fallback=np.full(L, FALLBACK_NONE),
+            relaxed_status=np.full(L, NOT_ATTEMPTED), iterations=iters, max_slack=np.zeros(L),
+            eq_residual=eq, ineq_violation=ineq, hard_violation=hard, polished=np.zeros(L, bool),
+            polish_iterations=np.zeros(L, np.int64))
+        for l in ([] if ok.all() else np.flatnonzero(~ok).tolist()):   # (b), then (c): rare
+            s, t0 = solvers[l], time.perf_counter_ns()
+            nom = Attempt(x=X[l], status=int(status[l]), res=(eq[l], ineq[l], hard[l]),
+                          max_slack=0.0, iterations=int(iters[l]), polished=False,
+                          polish_iterations=0)
+            r = policy.finish(nom, s._solve_relaxed(rows[l], n, mi), np)
+            for field, a in zip(SolveResult._fields, out):
+                a[l] = getattr(r, field)
+            s.last_solve_time_us += (time.perf_counter_ns() - t0) / 1e3
+        return out
 
     def solve(self, qp: QP, initvals=None, checks: policy.Checks | None = None) -> SolveResult:
         """The policy's outcome for ``qp`` (class docstring): ``solve_lanes`` with this one
@@ -262,7 +295,7 @@ class PiqpSolver:
         if checks is None:
             qp = qp_to_numpy(qp)
             checks = policy.checks(qp)
-        one = solve_lanes([self], qp.with_arrays(lambda a: a[None]),
+        one = PiqpSolver.solve_lanes([self], qp.with_arrays(lambda a: a[None]),
                           policy.Checks(*(np.asarray(c)[None] for c in checks)))
         self.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
         return row(one, 0)
@@ -297,44 +330,6 @@ class PiqpSolver:
                        iterations=iters, polished=False, polish_iterations=0)
 
 
-def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
-    """``PiqpSolver.solve(qp_l, checks=checks_l)`` for L QPs of one shape, each with its own
-    ``PiqpSolver`` (``solvers[l]``; the lanes of ``sim.lockstep``): PIQP solves each QP as
-    posed, the acceptance of all L runs at once (``policy.accept_batch``), and the relaxed
-    QP (b) is solved, per QP, only where the QP as posed failed. ``qp`` and ``checks``:
-    float64 numpy arrays with the leading axis L. Returns one SolveResult whose fields are
-    numpy arrays with the leading axis L; row l is what ``solvers[l].solve`` returns for
-    QP l (``tests/test_lockstep.py`` holds the two equal)."""
-    L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
-    X = np.empty((L, n))
-    status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
-    P, q, A, b, G, h, lb, ub, soft = qp.arrays()
-    rows = [QP(P[l], q[l], A[l], b[l], G[l], h[l], lb[l], ub[l], soft[l]) for l in range(L)]
-    for l, s in enumerate(solvers):
-        t0 = time.perf_counter_ns()
-        X[l], status[l], iters[l] = s._solve_nominal(rows[l])
-        s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
-    tol = np.array([s.feas_tol for s in solvers])
-    status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)
-    ok = status == int(SolveStatus.SOLVED)
-    # the accepted QPs' fields; each other row is set whole below
-    out = SolveResult(
-        x=X, status=status, fallback=np.full(L, FALLBACK_NONE),
-        relaxed_status=np.full(L, NOT_ATTEMPTED), iterations=iters, max_slack=np.zeros(L),
-        eq_residual=eq, ineq_violation=ineq, hard_violation=hard, polished=np.zeros(L, bool),
-        polish_iterations=np.zeros(L, np.int64))
-    for l in ([] if ok.all() else np.flatnonzero(~ok).tolist()):   # (b), then (c): rare
-        s, t0 = solvers[l], time.perf_counter_ns()
-        nom = Attempt(x=X[l], status=int(status[l]), res=(eq[l], ineq[l], hard[l]),
-                      max_slack=0.0, iterations=int(iters[l]), polished=False,
-                      polish_iterations=0)
-        r = policy.finish(nom, s._solve_relaxed(rows[l], n, mi), np)
-        for field, a in zip(SolveResult._fields, out):
-            a[l] = getattr(r, field)
-        s.last_solve_time_us += (time.perf_counter_ns() - t0) / 1e3
-    return out
-
-
 def solve_qp_piqp(qp: QP, initvals=None, **settings) -> tuple[np.ndarray | None, SolveStatus]:
     """One plain solve through qpsolvers' PIQP interface (dense backend), no fallback.
 
@@ -353,5 +348,5 @@ def solve_qp_piqp(qp: QP, initvals=None, **settings) -> tuple[np.ndarray | None,
     return (x if status == SolveStatus.SOLVED else None), status
 
 
-__all__ = ["PiqpSolver", "solve_lanes", "solve_qp_piqp", "status_from_piqp", "qp_to_numpy",
+__all__ = ["PiqpSolver", "solve_qp_piqp", "status_from_piqp", "qp_to_numpy",
            "residuals", "DEFAULT_SETTINGS", "REDUCED_QP_SETTINGS"]

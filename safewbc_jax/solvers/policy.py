@@ -131,7 +131,7 @@ def residuals_checked(x, qp: QP, ch: Checks):
 
 
 def accept_batch(x, qp: QP, status, feas_tol, checks: Checks):
-    """``accept`` with ``checks`` for a batch of QPs on the host (``piqp_path.solve_lanes``):
+    """``accept`` with ``checks`` for a batch of QPs on the host (``PiqpSolver.solve_lanes``):
     x (L, n), status (L,) SolveStatus codes, qp's and checks' arrays with the leading axis
     L. Returns (status (L,), (eq, ineq, hard) each (L,)); the residuals are NaN where the
     solver did not report SOLVED, as ``accept`` leaves them on the host."""
