@@ -214,6 +214,16 @@ def arms_deployment(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def short_squat_deployment(tmp_path_factory):
+    """One MuJoCo + PIQP run of the squat (2 s of motion after a 1 s settle), shared by the
+    closed-loop test and the MJX squat consistency test: (metrics, output directory)."""
+    from safewbc_jax.runner import run_scenario
+
+    out = tmp_path_factory.mktemp("short_squat_deployment")
+    return run_scenario("squat", duration=2.0, settle=1.0, out=out, quiet=True), out
+
+
+@pytest.fixture(scope="session")
 def short_walk_deployment(tmp_path_factory):
     """One MuJoCo + PIQP run of a short walk (2.2 s of walking after a 1.2 s settle: six
     steps), shared by the walking test and the MJX walking consistency test:

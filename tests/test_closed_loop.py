@@ -10,9 +10,9 @@ from safewbc_jax.runner import run_scenario
 
 
 @pytest.mark.slow
-def test_short_squat(tmp_path):
-    m = run_scenario("squat", duration=1.5, settle=1.0, out=tmp_path, quiet=True)
-    assert json.loads((tmp_path / "metrics.json").read_text()) == json.loads(json.dumps(m))
+def test_short_squat(short_squat_deployment):
+    m, out = short_squat_deployment          # conftest: 2 s of squat after a 1 s settle
+    assert json.loads((out / "metrics.json").read_text()) == json.loads(json.dumps(m))
     assert not m["fell"]
     assert m["qp_failed"] == 0 and m["qp_solved"] + m["fallbacks"] == m["control_steps"]
     assert m["tracking_rms"]["com"] <= 0.01          # m, after the first 0.5 s of motion
@@ -22,8 +22,8 @@ def test_short_squat(tmp_path):
     assert m["eq_residual_max"] <= 1e-8              # the dynamics hold in every solution
     assert m["loop_residual_max"] < 0.002            # the simulator's rods stay closed
     for f in ("tracking_com.png", "tracking_torso.png", "tracking_arms.png", "log.npz"):
-        assert (tmp_path / f).is_file()
-    log = np.load(tmp_path / "log.npz")
+        assert (out / f).is_file()
+    log = np.load(out / "log.npz")
     assert np.all(np.isfinite(log["u"]))
 
 

@@ -23,25 +23,19 @@ import jax
 import numpy as np
 import pytest
 
-from safewbc_jax import barriers, scenarios
+from safewbc_jax import barriers
 from safewbc_jax.batch.rollout import BatchConfig, BatchError, Push, default_params, run_batch
-from safewbc_jax.sim.mujoco_loop import RunConfig, run
 
 SETTLE = 1.0
 ARMS_S = 8.0
 
 
-def _c_loop(name, duration):
-    sc = scenarios.get_scenario(name)
-    return run(sc, sc.default_params(), RunConfig(duration=duration, settle=SETTLE))
-
-
 @pytest.fixture(scope="module")
-def squat():
+def squat(short_squat_deployment):
     cfg = BatchConfig("squat", duration=2.0, settle=SETTLE, decimate=10)
     met, rec = run_batch(cfg, default_params("squat", 1))
-    log, info = _c_loop("squat", 2.0)
-    return met, rec, log, info
+    m_c, out = short_squat_deployment      # conftest: the MuJoCo + PIQP run, 2 s after 1 s
+    return met, rec, np.load(out / "log.npz"), m_c
 
 
 @pytest.mark.slow
