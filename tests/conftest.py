@@ -8,27 +8,6 @@ import pytest
 
 pytest_plugins = ["pytester"]
 
-
-def _pin_xdist_worker() -> None:
-    """With pytest-xdist's workers at least as many as the cores, worker gwN runs on its
-    own share of them (its subprocesses inherit it; the sweep pool's workers pin
-    themselves). XLA sizes its thread pools by the cores a process may use, so two
-    workers then do not run four threads on two cores; measured on a 2-core CPU, the
-    full suite: benchmarks/README.md, "The test suite"."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
-    n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-    if not worker.startswith("gw") or n < 2 or not hasattr(os, "sched_setaffinity"):
-        return
-    cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) < n:
-        return
-    share = len(cpus) // n
-    i = int(worker[2:]) % n
-    os.sched_setaffinity(0, cpus[i * share:(i + 1) * share])
-
-
-_pin_xdist_worker()      # before anything starts XLA's CPU client
-
 jax.config.update("jax_enable_x64", True)
 
 # JAX's persistent compilation cache for the whole session and its subprocesses (the
