@@ -59,7 +59,7 @@ def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
     push = (Push.single(opts["push"], opts["push_at"], opts["push_for"])
             if opts["push"] is not None else None)
     cfg = RunConfig(duration=opts["duration"], settle=opts["settle"], speed=opts["speed"],
-                    push=push, control_dt=control_dt)
+                    push=push, control_dt=control_dt, count_kernels=True)
     tsid_us, tsid_bad = [], [0]
     started = [False]
 
@@ -76,7 +76,7 @@ def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
     t0 = time.perf_counter()
     log, info = run(sc, sc.default_params(), cfg, observer=observer)
     wall = time.perf_counter() - t0
-    kern = info["controller"].kernels()
+    kern = info["kernels"]
     skip = metrics.LATENCY_SKIP
     lat = log["latency"]
     m = info["metrics"]

@@ -6,6 +6,7 @@ the A-ECBF row never binds (the control without the barrier). Thresholds are par
 so the second run's program is the first one's and comes from the persistent compilation
 cache that conftest sets up (it still traces)."""
 
+import dataclasses
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -29,8 +30,11 @@ def _runs(name, ref, far, duration):
     p = sc.default_params()
     cfg = RunConfig(duration=duration)
     on, info_on = run(sc, p, cfg)
-    off, info_off = run(sc, p.replace(threshold={**p.threshold, s.name: jnp.asarray(far)}), cfg)
+    off, info_off = run(sc, p.replace(threshold={**p.threshold, s.name: jnp.asarray(far)}),
+                        dataclasses.replace(cfg, count_kernels=True))
     assert not info_on["fell"] and not info_off["fell"]
+    # the jitted step's kernels where asked for (benchmarks/controller_step.py), else none
+    assert "kernels" not in info_on and info_off["kernels"]["total"] > 100
     assert info_on["metrics"]["qp_failed"] == 0 and info_off["metrics"]["qp_failed"] == 0
     return on, off
 

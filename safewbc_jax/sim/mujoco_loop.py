@@ -38,6 +38,7 @@ class RunConfig:
     record_qps_every: int = 0          # keep every k-th QP (full matrices) in the log; 0: none
     speed: float = 0.2                 # walking: commanded forward speed (m/s)
     push: Push | None = None           # a push on the base (push.Push.single(force, at, for))
+    count_kernels: bool = False        # the jitted step's kernels in the info ("kernels")
 
 
 class ContactSensing:
@@ -200,8 +201,9 @@ def rollout(sim: SimRobot, ctl: Controller, n_steps: int, push: Push | None = No
 def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None,
         observer=None):
     """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict with the
-    finalized metric columns under "metrics", ``metrics.finalize``, and the deployed
-    ``Controller`` that ran under "controller").
+    finalized metric columns under "metrics", ``metrics.finalize``, and with
+    ``cfg.count_kernels`` the kernels XLA runs for the jitted step under "kernels",
+    ``Controller.kernels``).
 
     ``progress(k, n, phase)``, when given, is called with k = 0 and phase "compiling" just
     before the controller starts (Theorem 1, compile, warm-up: ``Controller.start``), then
@@ -287,4 +289,4 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
                         monitors=[b.name for b in scenario.monitors],
                         bad_measurements=ctl.bad_measurements, metrics=flat,
                         t_qp=arrays["t_qp"], t_solve=arrays["t_solve"], compile_s=compile_s,
-                        controller=ctl)
+                        **({"kernels": ctl.kernels()} if cfg.count_kernels else {}))
