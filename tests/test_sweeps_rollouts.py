@@ -88,6 +88,11 @@ def sweeps(tmp_path_factory):
         assert proc_a.poll() is None, (tmp / "a1.log").read_text()[-3000:]
         assert time.time() - t0 < 1200, "the first chunk took more than 20 minutes"
         time.sleep(0.2)
+    # the progress line follows the chunk's file by milliseconds: kill after it (a kill in
+    # between lost the line once, fresh45), still within chunk 2's rollout (seconds)
+    t1 = time.time()
+    while "[sweep] 2/4 rollouts" not in (tmp / "a1.log").read_text() and time.time() - t1 < 10:
+        time.sleep(0.02)
     proc_a.send_signal(signal.SIGKILL)   # now in chunk 2 of 2 (compiled, rolling out)
     proc_a.wait()
     log_a.close()
