@@ -486,8 +486,7 @@ class Controller:
         return cmds[0]
 
     def _hold(self, prep, reason: str, t_in: float) -> Command:
-        """A step whose measurement was refused: no solve, the last good torque held, the
-        step concluded as one without a solution."""
+        """A refused measurement's step: no solve, the last good torque held."""
         self.last_times = (np.nan, np.nan)
         if self.keep_metrics:
             self._pending = (prep, self._no_sol, None, None, np.nan, np.nan)
@@ -522,10 +521,7 @@ class Controller:
                   else np.stack([lane._last_u for lane in lanes]))
         u = control_step.hold_torque(res.x, usable[:, None], last_u, qpm.blocks)
         motor = lead.motors.arrays().to_motor(u)
-        sols = np.empty((len(lanes), lead._no_sol.size))      # _flat_sol's layout, by rows
-        sols[:, :lead._nx] = res.x
-        for k, f in enumerate(res[1:]):
-            sols[:, lead._nx + k] = f
+        sols = lead._flat_sol(res)
         times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6 / len(lanes))
         t_out = (time.perf_counter() - t_in) * 1e6
         cmds = []
@@ -627,9 +623,13 @@ class Controller:
         return self._unpack_out(packed)
 
     def _flat_sol(self, res) -> np.ndarray:
-        """A host SolveResult as the jitted conclude's flat vector (``FlatTree`` layout:
-        x, then each scalar field in order), without a per-field conversion."""
-        return np.concatenate([res.x, np.array(res[1:], dtype=np.float64)])
+        """A host SolveResult (one QP's, or L's with a leading axis) as conclude's flat
+        vector(s): x, then each scalar field (``FlatTree``'s layout), filled in place."""
+        out = np.empty(np.shape(res.x)[:-1] + (self._nx + len(res) - 1,))
+        out[..., :self._nx] = res.x
+        for k, f in enumerate(res[1:]):
+            out[..., self._nx + k] = f
+        return out
 
     def flat_measurement(self, meas: Measurement):
         """The measurement as the step's flat vector (q, v, sole forces, t), or None where
