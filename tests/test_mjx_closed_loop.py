@@ -164,8 +164,10 @@ def test_mixed_precision_keeps_the_walks_float64_outcomes(walk, tmp_path):
 
     mixed = run_precisions({**WALK_JOB, "precisions": ["mixed"]}, tmp_path)["mixed"]
     f64 = walk[0]
+    # tracking RMS within 10% or 0.5 mm: this short walk's CoM RMS is 2.5 mm, and the
+    # touchdowns' timing alone moves it by 0.3 mm (measured, float64 against mixed)
     assert_mixed_keeps_float64(*({k: np.asarray(v)[:1] for k, v in m.items()}
-                                 for m in (f64, mixed)))
+                                 for m in (f64, mixed)), rms_floor=5e-4)
     for m in (f64, mixed):
         assert not m["fell"][1] and m["qp_failed"][1] == 0 and m["barrier_min.swing_foot"][1] > 0
     assert f64["steps_taken"][1] == mixed["steps_taken"][1] >= 3

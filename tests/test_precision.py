@@ -109,10 +109,10 @@ def run_precisions(job: dict, out: Path) -> dict:
     return {p: dict(np.load(out / f"{p}.npz")) for p in job["precisions"]}
 
 
-def assert_mixed_keeps_float64(a: dict, b: dict) -> None:
+def assert_mixed_keeps_float64(a: dict, b: dict, rms_floor: float = 0.0) -> None:
     """Issue 33's criteria, float64 metrics ``a`` against mixed ``b``: nobody falls, every
     QP solved, the same steps taken, barrier minima within 1 mm, tracking RMS within 10%
-    (or 0.5 mm)."""
+    (or ``rms_floor``, m or rad, where that is more)."""
     assert not np.asarray(a["fell"]).any() and not np.asarray(b["fell"]).any()
     assert (np.asarray(a["qp_failed"]) == 0).all() and (b["qp_failed"] == 0).all()
     if "steps_taken" in a:
@@ -123,10 +123,8 @@ def assert_mixed_keeps_float64(a: dict, b: dict) -> None:
     for k in bars:
         assert np.abs(np.asarray(a[k]) - b[k]).max() <= 1e-3, k
     for k in (k for k in a if k.startswith("tracking_rms.")):
-        # 10%, or 0.5 mm (mrad) where that is more: a short walk's CoM RMS is 2.5 mm, and
-        # the touchdowns' timing alone moves it by 0.3 mm (measured, float64 against mixed)
         ak = np.asarray(a[k])
-        assert (np.abs(ak - b[k]) <= np.maximum(0.1 * np.abs(ak), 5e-4)).all(), (k, ak, b[k])
+        assert (np.abs(ak - b[k]) <= np.maximum(0.1 * np.abs(ak), rms_floor)).all(), (k, ak, b[k])
 
 
 @pytest.mark.slow
