@@ -369,7 +369,7 @@ class Controller:
         if self._last_qp is None:
             return None
         qpm, j = self._last_qp
-        return qpm.with_arrays(lambda a: a[j])
+        return qpm.row(j)
 
     @property
     def state(self) -> control_step.ControllerState:

@@ -89,6 +89,11 @@ class QP:
         """The array fields in ``FIELDS`` order."""
         return tuple(getattr(self, f) for f in FIELDS)
 
+    def row(self, l: int) -> "QP":
+        """The l-th QP of a batch of them (each array's leading axis; one lane's, or one
+        recorded step's)."""
+        return QP(*(getattr(self, f)[l] for f in FIELDS), nv=self.nv, nu=self.nu, nc=self.nc)
+
     def with_arrays(self, fn) -> "QP":
         """fn applied to every array field, the block sizes kept (``tree_map``'s result,
         without its flattening: the host path calls this every control step)."""

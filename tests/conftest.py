@@ -1,5 +1,6 @@
 import os
 import tempfile
+import time
 from pathlib import Path
 
 import jax
@@ -37,6 +38,7 @@ except ValueError:
                             f"{os.environ['SAFEWBC_FAST_LIMIT_S']!r}") from None
 _SETUP_S = pytest.StashKey[float]()
 _CPU0 = pytest.StashKey[float]()
+_WALL0 = pytest.StashKey[float]()
 
 
 def _cpu_s() -> float:
@@ -51,7 +53,23 @@ def _shared_cores() -> bool:
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_setup(item):
     item.stash[_CPU0] = _cpu_s()
+    item.stash[_WALL0] = time.time()
     yield
+
+
+# SAFEWBC_TEST_CPU_LOG=FILE: one tab-separated line a test (worker, test, start and end
+# time, CPU seconds of its process and finished subprocesses from setup to teardown), for
+# seeing where a run's time goes: benchmarks/README.md, "The test suite".
+_CPU_LOG = os.environ.get("SAFEWBC_TEST_CPU_LOG")
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item, nextitem):
+    if _CPU_LOG and _CPU0 in item.stash:
+        with open(_CPU_LOG, "a") as f:
+            f.write(f"{os.environ.get('PYTEST_XDIST_WORKER', 'main')}\t{item.nodeid}\t"
+                    f"{item.stash[_WALL0]:.1f}\t{time.time():.1f}\t"
+                    f"{_cpu_s() - item.stash[_CPU0]:.1f}\n")
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -167,7 +167,7 @@ def _piqp(qp, fallback, settings, skip):
     for i in range(nb):
         if skip[i]:
             continue
-        qpi = qp.with_arrays(lambda a: a[i])
+        qpi = qp.row(i)
         if fallback:
             res = solver.solve(qpi)
             status = res.status

@@ -65,7 +65,7 @@ def solve_lanes(solvers: list, qp: QP, checks) -> SolveResult:
     kind = type(solvers[0])
     if solves_lanes(solvers[0]) and all(type(s) is kind for s in solvers):
         return kind.solve_lanes(solvers, qp, checks)
-    rows = [s.solve(qp.with_arrays(lambda a: a[i]), checks=type(checks)(*(c[i] for c in checks)))
+    rows = [s.solve(qp.row(i), checks=type(checks)(*(c[i] for c in checks)))
             for i, s in enumerate(solvers)]
     return SolveResult(*(np.stack([np.asarray(getattr(r, f)) for r in rows])
                          for f in SolveResult._fields))

@@ -257,8 +257,7 @@ class PiqpSolver:
         L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
         X = np.empty((L, n))
         status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
-        P, q, A, b, G, h, lb, ub, soft = qp.arrays()
-        rows = [QP(P[l], q[l], A[l], b[l], G[l], h[l], lb[l], ub[l], soft[l]) for l in range(L)]
+        rows = [qp.row(l) for l in range(L)]
         for l, s in enumerate(solvers):
             t0 = time.perf_counter_ns()
             X[l], status[l], iters[l] = s._solve_nominal(rows[l])
