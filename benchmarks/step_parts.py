@@ -77,14 +77,13 @@ def main(argv=None) -> dict:
     terms0 = jax.tree_util.tree_map(np.asarray, jax.jit(terms_of)(qj, vj))
     flat_terms = FlatTree(terms0)
     qp0 = jax.tree_util.tree_map(np.asarray, jax.jit(lambda q, v, t: controller.build_qp(
-        model, sc, params, terms_of(q, v), q, v, t, start, in_contact, ctl.ctx.barrier_on)[0])(
+        model, sc, params, terms_of(q, v), q, v, t, start, in_contact)[0])(
             qj, vj, tau))
     bounded, p_blockdiag = reduce.bounded_variables(qp0), reduce.p_block_diagonal(qp0)
     packers = {k: Packer() for k in ("rest", "whole")}
 
     def rest(terms, q, v, t, packer):
-        qpm, _ = controller.build_qp(model, sc, params, terms, q, v, t, start, in_contact,
-                                     ctl.ctx.barrier_on)
+        qpm, _ = controller.build_qp(model, sc, params, terms, q, v, t, start, in_contact)
         red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
         return packer.pack((qpm, red, rmap, policy.checks(red, jnp)))
 

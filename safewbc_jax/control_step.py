@@ -125,13 +125,12 @@ def hold_torque(x, usable, last_u, blocks: Blocks, xp=np):
 @dataclasses.dataclass(frozen=True, eq=False)
 class Context:
     """What a control step is compiled for (static: hashed by identity): the controller
-    model, the scenario, the A-ECBF rows on or off, the control period, the motor map,
-    the robot's weight (N, the gait's early-touchdown test), and the JAX solver's settings
-    (``precision.qp_settings``)."""
+    model, the scenario (barriers off: ``Scenario.without_barriers``), the control period,
+    the motor map, the robot's weight (N, the gait's early-touchdown test), and the JAX
+    solver's settings (``precision.qp_settings``)."""
 
     model: robot.RobotModel
     scenario: object
-    barrier_on: bool
     control_dt: float
     motors: MotorArrays
     qp_settings: object = None      # jax_qp.Settings of step_jax's solve (None: float64's)
@@ -274,8 +273,7 @@ def prepare(ctx: Context, params, start, run: RunValues, state: ControllerState,
         start = {**start, "settle": run.settle}
     terms = controller.robot_terms(model, sc, q, v, domain)
     qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, start,
-                                   jnp.asarray(sc.in_contact, dtype),
-                                   barrier_on=ctx.barrier_on, domain=domain)
+                                   jnp.asarray(sc.in_contact, dtype), domain=domain)
     keep = lambda new, old: jnp.where(ok, new, old)  # noqa: E731
     state = ControllerState(gait=gait, last_q=q, last_v=keep(v_in, state.last_v),
                             t0=keep(t0, state.t0), prev_t=t, prev_tau=keep(tau, state.prev_tau))

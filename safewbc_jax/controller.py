@@ -96,7 +96,7 @@ def n_chain_rows(model) -> int:
 
 
 def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau, start,
-             in_contact, barrier_on=True, domain=None):
+             in_contact, domain=None):
     """QP matrices of one control step and its ``QPAux`` (outputs and references, barrier values).
 
     ``domain`` (walking): the gait state (stance side, step time, feet at step start,
@@ -137,7 +137,7 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
         else:                       # automatic differentiation of h
             r = barriers.aecbf_row(b.h_fn(model, params.threshold[b.name], domain), q, v,
                                    params.poles[b.name], b.relative_degree)
-        on = jnp.asarray(1.0 if barrier_on else 0.0, q.dtype) * b.is_active(domain)
+        on = jnp.asarray(b.is_active(domain), q.dtype)
         rows.append(on * r.a_row)
         bs.append(jnp.where(on > 0, r.b, -1e9))
         hvals[b.name] = r.eta[0]

@@ -217,7 +217,7 @@ class Controller:
                  speed=0.2, settle=None, duration=None, keep_metrics=True):
         import mujoco
 
-        sc = scenarios.get_scenario(scenario, barrier) if isinstance(scenario, str) else scenario
+        sc = scenarios.get_scenario(scenario, barrier)
         n_steps, settle, _ = control_step.schedule(sc, duration, settle, control_dt)
         self.walking = sc.gait is not None
         if self.walking:
@@ -235,7 +235,7 @@ class Controller:
         mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
         self.model = robot.from_mujoco(mc)
         self.motors = MotorMap.build(mc)
-        self.ctx = control_step.Context(self.model, self.scenario, self.barrier, self.control_dt,
+        self.ctx = control_step.Context(self.model, self.scenario, self.control_dt,
                                         self.motors.arrays())
         self.run_values = control_step.RunValues(jnp.asarray(settle), jnp.asarray(float(speed)),
                                                  jnp.asarray(t_half))

@@ -100,11 +100,10 @@ def names() -> tuple:
 
 def get_scenario(name, barrier: bool = True, safe_sets=()) -> Scenario:
     """A scenario by name, a user's Scenario from a "FILE.py:NAME" reference
-    (``userfile.load``), or a Scenario itself. ``barrier`` only matters for a scenario
-    with a gait (walking), whose barriers (and the user's safe sets) are monitored
-    instead of enforced when False (the double-support ones keep their rows and zero
-    them, ``Context.barrier_on``). ``safe_sets``: SafeSets or "FILE.py:NAME" references
-    (``safesets.load``) to add."""
+    (``userfile.load``), or a Scenario itself. ``barrier`` False: every safe set (the
+    user's too) monitored instead of enforced (``Scenario.without_barriers``: no A-ECBF
+    row in the QP, h still recorded), the one way the barriers are turned off.
+    ``safe_sets``: SafeSets or "FILE.py:NAME" references (``safesets.load``) to add."""
     if isinstance(name, Scenario):
         sc = name
     elif name in WALKING:
@@ -125,6 +124,6 @@ def get_scenario(name, barrier: bool = True, safe_sets=()) -> Scenario:
             raise SafeSetError(f"safe set {s.name!r}: scenario {sc.name!r} already has a safe "
                                f"set of that name ({', '.join(sorted(taken))})")
     sc = sc.with_safe_sets(*extra)
-    if sc.gait is not None and not barrier:
+    if not barrier:
         sc = sc.without_barriers()
     return sc

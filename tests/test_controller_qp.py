@@ -14,11 +14,7 @@ from safewbc_jax.solvers.result import FALLBACK_NONE
 from safewbc_jax.solvers.status import SolveStatus
 
 
-@pytest.fixture(scope="module")
-def arms_qp(ctrl_mj, rm):
-    """The arms scenario's QP (barrier row included) at the stand pose with a random
-    velocity, half-way into the motion."""
-    sc = scenarios.get_scenario("arms")
+def _arms_qp(ctrl_mj, rm, sc):
     params = sc.default_params()
     q = jnp.asarray(ctrl_mj.key_qpos[0])
     v = jnp.asarray(np.random.default_rng(3).normal(0, 0.2, rm.nv))
@@ -31,6 +27,34 @@ def arms_qp(ctrl_mj, rm):
 
     qpm, aux = jax.jit(fn)(q, v, jnp.asarray(6.0))
     return jax.tree_util.tree_map(np.asarray, qpm), aux
+
+
+@pytest.fixture(scope="module")
+def arms_qp(ctrl_mj, rm):
+    """The arms scenario's QP (barrier row included) at the stand pose with a random
+    velocity, half-way into the motion."""
+    return _arms_qp(ctrl_mj, rm, scenarios.get_scenario("arms"))
+
+
+def test_barriers_off_drops_the_rows_and_keeps_h(arms_qp, ctrl_mj, rm):
+    """``barrier=False`` (``safewbc run --no-barrier``, ``BatchConfig.barrier``, a sweep's
+    ``barrier = false``), by name or on a Scenario object, monitors every safe set: the QP
+    as with the barrier but for its A-ECBF row, and h still reported."""
+    arms = scenarios.get_scenario("arms")
+    off = scenarios.get_scenario("arms", barrier=False)
+    assert [b.name for b in off.barriers] == [] and \
+        {b.name for b in off.monitors} == {"left_fist", "right_fist"}
+    assert scenarios.get_scenario(arms, barrier=False) == off
+    on, aux_on = arms_qp
+    qp_off, aux_off = _arms_qp(ctrl_mj, rm, off)
+    assert qp_off.G.shape[0] == on.G.shape[0] - 1
+    for f in ("P", "q", "A", "b", "lb", "ub"):
+        np.testing.assert_array_equal(getattr(qp_off, f), getattr(on, f), err_msg=f)
+    np.testing.assert_array_equal(qp_off.G, on.G[:-1])     # the barrier row is the last
+    np.testing.assert_array_equal(qp_off.h, on.h[:-1])
+    for name in ("left_fist", "right_fist"):
+        np.testing.assert_allclose(aux_off.barrier_h[name], aux_on.barrier_h[name],
+                                   rtol=0, atol=1e-12)
 
 
 def test_qp_shapes_and_soft_rows(arms_qp, rm):

@@ -201,7 +201,7 @@ def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = (
     q0, v0 = (np.asarray(a) for a in sm.to_controller(d.qpos, d.qvel))
     start = control_step.start_data(model, sc, q0)
     motors = MotorMap.build(mc)
-    ctx = control_step.Context(model, sc, cfg.barrier, cfg.control_dt, motors.arrays(),
+    ctx = control_step.Context(model, sc, cfg.control_dt, motors.arrays(),
                                precision_mod.qp_settings(cfg.precision))
 
     sim_dtype = precision_mod.physics_dtype(cfg.precision)
