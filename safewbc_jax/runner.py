@@ -136,7 +136,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")
-    cfg = RunConfig(duration=duration, control_dt=control_dt, barrier_on=barrier, settle=settle,
+    cfg = RunConfig(duration=duration, control_dt=control_dt, barrier=barrier, settle=settle,
                     record_qps_every=record_qps_every, speed=speed,
                     push=None if push is None else Push.single(push, push_at, push_for))
     # a tqdm bar of the control steps on stderr (one line per phase off a terminal)

@@ -33,7 +33,7 @@ from safewbc_jax.solvers.result import fallback_name
 class RunConfig:
     duration: float | None = None      # s of motion (scenario default when None)
     control_dt: float = 1e-3           # s
-    barrier_on: bool = True
+    barrier: bool = True               # False: every safe set monitored only (no A-ECBF row)
     settle: float | None = None        # s of standing before the motion (scenario default)
     record_qps_every: int = 0          # keep every k-th QP (full matrices) in the log; 0: none
     speed: float = 0.2                 # walking: commanded forward speed (m/s)
@@ -220,7 +220,7 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     in (the gait advanced from step k's measurement).
     """
     n_steps, settle, duration = schedule(scenario, cfg.duration, cfg.settle, cfg.control_dt)
-    ctl = Controller(scenario, params, cfg.control_dt, barrier=cfg.barrier_on, speed=cfg.speed,
+    ctl = Controller(scenario, params, cfg.control_dt, barrier=cfg.barrier, speed=cfg.speed,
                      settle=settle, duration=duration)
     sim = SimRobot(ctl.motors.names, cfg.control_dt)
     ms, model, d = sim.ms, sim.model, sim.d
