@@ -500,3 +500,27 @@ def test_cop_rows_against_direct_evaluation():
             for i in range(2):
                 rows = ok[4 * i:4 * i + 4]
                 assert rows.all() == (inside[i] or not in_contact[i])
+
+
+def test_wrench_map_sums_the_sole_wrenches_in_the_world_frame(ctrl_mj, rm):
+    """W of eq. 8 at random poses against the sum written out with MuJoCo's site frames:
+    each sole's wrench [f; m] (sole frame) is R f in the world and, about the world origin,
+    R m + p x (R f); a foot not in contact adds nothing."""
+    rng = np.random.default_rng(8)
+    w_fn = jax.jit(contacts.wrench_map)
+    for _ in range(3):
+        qn, _ = random_state(ctrl_mj, rng)
+        sites = _mj_sites(ctrl_mj, qn)
+        lam = rng.normal(0, 100, 12)
+        for mode in MODES:
+            force, moment = np.zeros(3), np.zeros(3)
+            for i, foot in enumerate(FEET):
+                if mode[i]:
+                    p, r = sites[foot]
+                    f, m = r @ lam[6 * i:6 * i + 3], r @ lam[6 * i + 3:6 * i + 6]
+                    force += f
+                    moment += m + np.cross(p, f)
+            w = np.asarray(w_fn(rm, jnp.asarray(qn), jnp.asarray(mode)))
+            # forces of 100 N at lever arms of ~1 m: 1e-9 relative is rounding
+            np.testing.assert_allclose(w @ lam, np.concatenate([force, moment]),
+                                       rtol=0, atol=1e-9 * 100 * 10)
