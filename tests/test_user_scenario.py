@@ -94,8 +94,9 @@ base_linear = 0.02
 @pytest.fixture(scope="module")
 def user_runs(tmp_path_factory):
     """``safewbc run`` of the example for 1.6 s of motion (the sway passes the limit at
-    tau = 0.47 s and peaks at tau = 1 s), and a two-rollout sweep of it on each engine, the
-    three side by side (their compiles are single-threaded)."""
+    tau = 0.47 s and peaks at tau = 1 s), and a two-rollout sweep of it on each engine: the
+    mjx sweep beside the other two (its compile is single-threaded), the mujoco sweep after
+    the run, whose controller programs it then loads from the compilation cache."""
     tmp = tmp_path_factory.mktemp("user_scenario")
     shutil.copy(EXAMPLE, tmp / "side_sway.py")
     (tmp / "sway.toml").write_text(SPEC)
@@ -109,11 +110,14 @@ def user_runs(tmp_path_factory):
                                 text=True),
         "mjx": subprocess.Popen(sweep + ["--out", "mjx", "--engine", "mjx"], cwd=tmp, env=env,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
-        "mujoco": subprocess.Popen(sweep + ["--out", "mujoco", "--engine", "mujoco",
-                                            "--workers", "1"], cwd=tmp, env=env,
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
     }
-    out = {k: (p.wait(timeout=1500), *p.communicate()) for k, p in procs.items()}
+    run = procs["run"].communicate(timeout=1500)
+    out = {"run": (procs["run"].returncode, *run)}
+    mujoco = subprocess.run(sweep + ["--out", "mujoco", "--engine", "mujoco", "--workers", "1"],
+                            cwd=tmp, env=env, capture_output=True, text=True, timeout=1500)
+    out["mujoco"] = (mujoco.returncode, mujoco.stdout, mujoco.stderr)
+    mjx = procs["mjx"].communicate(timeout=1500)
+    out["mjx"] = (procs["mjx"].returncode, *mjx)
     return tmp, out
 
 
