@@ -100,3 +100,15 @@ def test_import_changes_no_jax_setting_and_the_model_asks_for_x64():
     assert lines[0] == "x64 False"
     assert lines[1].startswith("refused") and "safewbc_jax.enable_x64()" in lines[1]
     assert lines[2] == "nv 36 True"
+
+
+def test_every_module_is_in_the_what_is_here_table():
+    """docs/index.md's "What is here" names every module of the package (by its file name,
+    or its folder for solvers/ and sweeps/), so that the map stays true as modules come."""
+    text = (ROOT / "docs" / "index.md").read_text()
+    table = text[text.index("## What is here"):]
+    table = table[:table.find("\n## ", 1)] if "\n## " in table[1:] else table
+    missing = [str(p.relative_to(ROOT)) for p in sorted(PKG.rglob("*.py"))
+               if p.name != "__init__.py" and f"`{p.name}`" not in table
+               and f"/{p.name}`" not in table and f"`safewbc_jax/{p.parent.name}/`" not in table]
+    assert not missing, f"not in docs/index.md's 'What is here': {missing}"
