@@ -130,7 +130,7 @@ class Context:
     solver's settings (``precision.qp_settings``)."""
 
     model: robot.RobotModel
-    scenario: object
+    scenario: scenario_mod.Scenario
     control_dt: float
     motors: MotorArrays
     qp_settings: object = None      # jax_qp.Settings of step_jax's solve (None: float64's)
