@@ -53,8 +53,27 @@ def test_cli_and_batch_refuse_a_bad_scenario_file_before_compiling(capsys, tmp_p
     assert "FILE.py:NAME (a Scenario of your own)" in capsys.readouterr().err
     with pytest.raises(BatchError, match="has no 'NOPE'"):
         plant(BatchConfig(f"{EXAMPLE}:NOPE"))
-    with pytest.raises(BatchError, match="or a Scenario of your own as FILE.py:NAME"):
+    with pytest.raises(BatchError, match="a Scenario of your own as FILE.py:NAME, or a Scenario object"):
         plant(BatchConfig("dance"))
+
+
+def test_batch_config_takes_a_scenario_object():
+    """``BatchConfig(scenario=...)`` takes the Scenario object itself, as ``Controller``
+    does: its plant holds the object itself, with the tasks, safe sets and start of its
+    "FILE.py:NAME" reference's, and the params follow the object's safe sets."""
+    from safewbc_jax.batch.rollout import BatchConfig, default_params, plant
+
+    obj = scenarios.get_scenario(REF)
+    by_obj, by_ref = plant(BatchConfig(obj)), plant(BatchConfig(REF))
+    assert by_obj.scenario is obj and by_ref.scenario.name == obj.name == "side_sway"
+    assert [t.name for t in by_obj.scenario.tasks] == [t.name for t in by_ref.scenario.tasks]
+    assert [b.name for b in by_obj.scenario.barriers] == ["com_side"]
+    np.testing.assert_array_equal(by_obj.q0, by_ref.q0)
+    np.testing.assert_array_equal(by_obj.start["origin"], by_ref.start["origin"])
+    p = default_params(obj, 3)
+    assert p.poles["com_side"].shape[0] == 3
+    off = plant(BatchConfig(obj, barrier=False)).scenario
+    assert off.barriers == () and [b.name for b in off.monitors] == ["com_side"]
 
 
 def test_sweep_spec_takes_a_scenario_file_from_its_folder(tmp_path):

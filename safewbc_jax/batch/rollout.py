@@ -55,6 +55,7 @@ from safewbc_jax.modelinfo import (control_substeps, foot_contact_ids, loop_resi
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
 from safewbc_jax import safesets, userfile
+from safewbc_jax.scenario import Scenario
 from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario
 from safewbc_jax.sim.mujoco_loop import load_at_stand
 from safewbc_jax.solvers import jax_qp
@@ -67,7 +68,7 @@ class BatchConfig:
     """What every rollout of a batch shares (static: one compile per config and batch
     size). ``decimate`` k > 0 keeps every k-th control step's trajectory."""
 
-    scenario: str = "squat"
+    scenario: str | Scenario = "squat"   # a name, "FILE.py:NAME", or a Scenario object
     barrier: bool = True
     duration: float | None = None     # s of motion (scenario default when None)
     settle: float | None = None       # s of standing before it (scenario default)
@@ -132,10 +133,12 @@ def _schedule(scenario, cfg: BatchConfig) -> tuple[int, float]:
 
 
 def _check_config(cfg: BatchConfig) -> None:
-    if cfg.scenario not in BATCHED_SCENARIOS and not userfile.is_ref(cfg.scenario):
+    if not isinstance(cfg.scenario, Scenario) and cfg.scenario not in BATCHED_SCENARIOS \
+            and not userfile.is_ref(cfg.scenario):
         known = ", ".join(BATCHED_SCENARIOS)
         raise BatchError(f"scenario {cfg.scenario!r} is not available in the batched path "
-                         f"(available: {known}, or a Scenario of your own as FILE.py:NAME)")
+                         f"(available: {known}, a Scenario of your own as FILE.py:NAME, or a "
+                         "Scenario object)")
     if not np.isfinite(cfg.speed):
         raise BatchError(f"BatchConfig.speed = {cfg.speed!r}: must be a finite number")
     if int(cfg.decimate) != cfg.decimate or cfg.decimate < 0:
@@ -177,16 +180,16 @@ def plant(cfg: BatchConfig) -> Plant:
     # file gets a new plant, and "a.py:X" and "./a.py:X" share one
     refs = tuple(userfile.absolute(r, Path.cwd(), "safe set", safesets.SafeSetError)
                  for r in cfg.safe_sets)
-    scenario = cfg.scenario
-    if userfile.is_ref(scenario):
+    scenario = cfg.scenario          # a Scenario object is its own key (hashed by value)
+    if isinstance(scenario, str) and userfile.is_ref(scenario):
         scenario = userfile.absolute(scenario, Path.cwd(), "scenario")
-    files = ((scenario,) if userfile.is_ref(scenario) else ()) + refs
+    files = ((scenario,) if isinstance(scenario, str) and userfile.is_ref(scenario) else ()) + refs
     return _plant(scenario, cfg.barrier, float(cfg.control_dt), refs,
                   tuple(userfile.digest(r) for r in files), cfg.precision)
 
 
 @functools.lru_cache(maxsize=8)
-def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = (),
+def _plant(scenario, barrier: bool, control_dt: float, safe_sets: tuple = (),
            digests: tuple = (), precision: str = "float64") -> Plant:
     cfg = BatchConfig(scenario=scenario, barrier=barrier, control_dt=control_dt,
                       safe_sets=safe_sets, precision=precision)
@@ -229,7 +232,7 @@ def _plant(scenario: str, barrier: bool, control_dt: float, safe_sets: tuple = (
 
 # ----------------------------------------------------------------------------- validation
 
-def default_params(scenario: str, batch: int, safe_sets=()) -> ControllerParams:
+def default_params(scenario, batch: int, safe_sets=()) -> ControllerParams:
     """The scenario's default ControllerParams (with the user's ``safe_sets``, as in
     ``BatchConfig``) with a leading batch axis on every leaf."""
     p = get_scenario(scenario, True, safe_sets).default_params()
@@ -246,7 +249,7 @@ def _check_inputs(pl: Plant, params, push: Push, perturb_v) -> int:
     try:
         leaves = ref_tree.flatten_up_to(params)
     except (ValueError, TypeError) as e:
-        raise BatchError(f"params do not have the structure of the {pl.cfg.scenario!r} "
+        raise BatchError(f"params do not have the structure of the {pl.scenario.name!r} "
                          f"scenario's ControllerParams: {e}") from None
     batch = None
     for (path, r), a in zip(ref_leaves, leaves):
