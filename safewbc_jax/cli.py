@@ -241,7 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--settle", type=_finite_float, default=None,
                    help="seconds standing before the motion (1 to 60; default 1.5)")
     p.add_argument("--out", default=None, help="output folder (default runs/SCENARIO)")
-    p.add_argument("--no-barrier", action="store_true", help="drop the A-ECBF rows: every safe set monitored only")
+    p.add_argument("--no-barrier", action="store_true",
+                   help="drop the A-ECBF rows: every safe set monitored only")
     p.add_argument("--params", default=None, help="TOML of ControllerParams overrides")
     p.add_argument("--safe-set", dest="safe_set", action="append", default=[],
                    metavar="FILE.py:NAME", help="add the SafeSet NAME of a Python file "
