@@ -13,7 +13,9 @@ differ):
   robot_steps_s    B x control steps / the time of one ``run_batch`` call, after a first
                    call that loads the compiled program
   mjx_steps_s      bare ``mjx.step`` (vmapped, scanned) at the same batch and precision, in
-                   physics steps/s and in control steps/s (``n_sub`` physics steps each)
+                   physics steps/s and in control steps/s (``n_sub`` physics steps each);
+                   a compile of its own per batch (about 20 s on a 2-core CPU), so
+                   --physics-batches can name the batches that time it
   ratio            closed loop time per control step over bare physics per control step
   max_diff         the largest difference of each metric of the first --ref rollouts from
                    a float64 run of the same rollouts on the CPU (barrier minima and
@@ -109,12 +111,19 @@ def main(argv=None) -> int:
     ap.add_argument("--ref", type=int, default=8,
                     help="rollouts checked against a CPU float64 run of the same rollouts")
     ap.add_argument("--physics-steps", type=int, default=200)
+    ap.add_argument("--physics-batches", nargs="+", type=int, default=None,
+                    help="the batches at which bare mjx.step is timed (default: every "
+                         "batch; each is a compile of its own)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     bad = [b for b in args.batches if b != "auto" and not (b.isdigit() and int(b) > 0)]
     if bad or len([b for b in args.batches if b != "auto"]) < 2:
         ap.error("--batches: at least two positive integers (the memory model's), and "
                  f"optionally 'auto'; got {args.batches}")
+    if args.physics_batches is not None:
+        off = [b for b in args.physics_batches if str(b) not in args.batches]
+        if off:
+            ap.error(f"--physics-batches {off}: not among --batches {args.batches}")
     missing = missing_packages()
     if missing:
         print("accelerator.py needs:\n  " + "\n  ".join(missing), file=sys.stderr)
@@ -182,8 +191,13 @@ def main(argv=None) -> int:
                     met, _ = R.run_batch(cfg, params, push)
                     run_s = time.perf_counter() - t0
                     rate = b * n_steps / run_s
-                    phys = bare_physics(cfg, b, args.physics_steps)
-                    phys_ctl = phys / pl.n_sub
+                    if args.physics_batches is None or b in args.physics_batches:
+                        phys = bare_physics(cfg, b, args.physics_steps)
+                        phys_ctl = phys / pl.n_sub
+                        bare = (f"mjx.step {phys:11,.0f} steps/s ({phys_ctl:,.0f} control "
+                                f"steps/s)  ratio {phys_ctl / rate:5.2f}")
+                    else:
+                        bare = "mjx.step not timed (--physics-batches)  ratio -"
                     nref = min(args.ref, b)
                     if ref is None or len(next(iter(ref.values()))) < nref:
                         ref_cfg = R.BatchConfig(sc, duration=args.duration)
@@ -195,8 +209,7 @@ def main(argv=None) -> int:
                     worst = {k: v for k, v in d.items()
                              if k.startswith(("barrier_min", "tracking_rms")) or k in COUNTS}
                     print(f"{sc:5s} {prec:7s} B={b:<6d} compile {compile_s:6.1f} s  "
-                          f"{rate:11,.0f} robot-steps/s  mjx.step {phys:11,.0f} steps/s "
-                          f"({phys_ctl:,.0f} control steps/s)  ratio {phys_ctl / rate:5.2f}  "
+                          f"{rate:11,.0f} robot-steps/s  {bare}  "
                           f"memory {mem[b] / GB:6.2f} GB  fell {int(np.sum(met['fell']))}",
                           flush=True)
                     print("      max diff from CPU float64 over "
