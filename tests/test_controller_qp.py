@@ -48,10 +48,16 @@ def test_barriers_off_drops_the_rows_and_keeps_h(arms_qp, ctrl_mj, rm):
     on, aux_on = arms_qp
     qp_off, aux_off = _arms_qp(ctrl_mj, rm, off)
     assert qp_off.G.shape[0] == on.G.shape[0] - 1
+    # two compiled programs: XLA may fuse the shared arithmetic differently, so equal up
+    # to rounding (1e-12 of each array's largest finite entry; the infinite bounds equal)
+    def same(a, b, what):
+        scale = max(np.abs(b[np.isfinite(b)]).max(), 1.0)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * scale, err_msg=what)
     for f in ("P", "q", "A", "b", "lb", "ub"):
-        np.testing.assert_array_equal(getattr(qp_off, f), getattr(on, f), err_msg=f)
-    np.testing.assert_array_equal(qp_off.G, on.G[:-1])     # the barrier row is the last
-    np.testing.assert_array_equal(qp_off.h, on.h[:-1])
+        same(getattr(qp_off, f), getattr(on, f), f)
+    same(qp_off.G, on.G[:-1], "G")          # the barrier row is the last
+    same(qp_off.h, on.h[:-1], "h")
+    np.testing.assert_array_equal(qp_off.soft, on.soft[:-1])
     for name in ("left_fist", "right_fist"):
         np.testing.assert_allclose(aux_off.barrier_h[name], aux_on.barrier_h[name],
                                    rtol=0, atol=1e-12)

@@ -106,8 +106,7 @@ def test_every_module_is_in_the_what_is_here_table():
     """docs/index.md's "What is here" names every module of the package (by its file name,
     or its folder for solvers/ and sweeps/), so that the map stays true as modules come."""
     text = (ROOT / "docs" / "index.md").read_text()
-    table = text[text.index("## What is here"):]
-    table = table[:table.find("\n## ", 1)] if "\n## " in table[1:] else table
+    table = text[text.index("## What is here"):].split("\n## ", 1)[0]
     missing = [str(p.relative_to(ROOT)) for p in sorted(PKG.rglob("*.py"))
                if p.name != "__init__.py" and f"`{p.name}`" not in table
                and f"/{p.name}`" not in table and f"`safewbc_jax/{p.parent.name}/`" not in table]
