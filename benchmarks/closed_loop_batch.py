@@ -92,6 +92,7 @@ def main(argv=None) -> dict:
     import jax
     import numpy as np
 
+    from safewbc_jax import precision
     from safewbc_jax.batch.rollout import (BatchConfig, default_chunk, default_params, plant,
                                            run_batch)
     from safewbc_jax.chunking import resolve_chunk
@@ -119,7 +120,7 @@ def main(argv=None) -> dict:
     rows = []
     for b in args.batches:
         params = default_params("arms", b)
-        step = jax.vmap(mjx.step, in_axes=(None, 0))
+        step = jax.vmap(precision.physics(mjx.step, pl.data0.qvel.dtype), in_axes=(None, 0))
         d0 = jax.tree_util.tree_map(lambda a: np.broadcast_to(a, (b,) + a.shape), pl.data0)
         phys = jax.jit(lambda d: jax.lax.scan(lambda c, _: (step(pl.mjx_model, c), None), d,
                                               None, length=args.physics_steps)[0].qpos)

@@ -43,7 +43,18 @@ class ControllerParams:
     gamma_tangential: jax.Array
 
     def replace(self, **kw) -> "ControllerParams":
-        return dataclasses.replace(self, **kw)
+        """A copy with the fields in ``kw`` replaced, their values as float64 arrays
+        (``as_float64``)."""
+        return dataclasses.replace(self, **as_float64(kw))
+
+
+def as_float64(tree):
+    """Every leaf of ``tree`` as a float64 JAX array that is not weakly typed. A Python
+    float through ``jnp.asarray`` is weakly typed, and a weak leaf makes another program
+    for every jitted function that takes the params as a pytree: a controller started with
+    such params compiled its start-up QP again (7 s on a 2-core CPU, measured with
+    ``jax_log_compiles``) where the same params as float64 load it from the cache."""
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), tree)
 
 
 def make_params(outputs: dict, barriers: dict, **scalars) -> ControllerParams:
@@ -133,7 +144,7 @@ def apply_overrides(params: ControllerParams, overrides: dict, src: str = "param
                 raise ParamsError(f"{src}: {key} = {value!r}: expected a finite number")
             if value < 0 or (key in ("mu", "f_min") and value <= 0):
                 raise ParamsError(f"{src}: {key} = {value!r}: must be positive")
-            kw[key] = jnp.asarray(float(value))
+            kw[key] = float(value)
         else:
             raise ParamsError(f"{src}: unknown key {key!r}; known: kp, kd, weight, poles, "
                               f"threshold, {', '.join(SCALARS)}")

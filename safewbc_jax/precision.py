@@ -71,24 +71,23 @@ def cast_floats(tree, dtype):
 
 
 def physics(step, dtype):
-    """``step(model, data) -> data`` traced so that it keeps ``dtype``: float32 under
-    ``jax.enable_x64(False)`` (see the module docstring); float64 as it is."""
-    if jnp.dtype(dtype) == jnp.float64:
-        return step
+    """``step(model, data) -> data`` traced so that it keeps ``dtype`` (float32 under
+    ``jax.enable_x64(False)``, see the module docstring; float64 as it is) and returns each
+    leaf of ``data`` in the dtype it was given, so that the data can be a loop carry:
+    MJX's ``put_data`` makes the contacts' geom indices int32 and, under x64, ``mjx.step``
+    returns them int64 (values that fit either). Knowing the step's dtypes beforehand
+    would take an ``eval_shape`` of ``mjx.step``: 3.2 s of tracing in every process that
+    builds a plant (measured, 2-core CPU)."""
+    def keep_dtypes(model, data):
+        if jnp.dtype(dtype) == jnp.float64:
+            out = step(model, data)
+        else:
+            with jax.enable_x64(False):
+                out = step(model, data)
+        return jax.tree_util.tree_map(
+            lambda o, i: o if o.dtype == i.dtype else o.astype(i.dtype), out, data)
 
-    def step32(model, data):
-        with jax.enable_x64(False):
-            return step(model, data)
-
-    return step32
+    return keep_dtypes
 
 
-def as_step_output(step, model, data):
-    """``data`` with each leaf in the dtype ``step`` returns it in (MJX's ``put_data`` and
-    ``step`` disagree on some integer dtypes), so that it can be a loop carry."""
-    shape = jax.eval_shape(step, model, data)
-    return jax.tree_util.tree_map(lambda a, s: jnp.asarray(a, s.dtype), data, shape)
-
-
-__all__ = ["PRECISIONS", "check", "physics_dtype", "qp_settings", "cast_floats", "physics",
-           "as_step_output"]
+__all__ = ["PRECISIONS", "check", "physics_dtype", "qp_settings", "cast_floats", "physics"]

@@ -1,6 +1,8 @@
 """The controller's QP at a real state: PIQP solutions against the dynamics, the exact
 equality elimination against the full QP, parameter and pole validation."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -140,6 +142,26 @@ def test_barrier_row_in_the_qp(arms_qp, rm, ctrl_mj):
     row = -qpm.G[-1, :rm.nv]
     assert np.abs(qpm.G[-1, rm.nv:]).max() == 0.0
     assert np.linalg.norm(row) > 0.1  # the fist moves with the arm joints
+
+
+def test_params_stay_float64_whatever_a_user_passes():
+    """Python floats in ``replace``, a TOML override or a controller's params become
+    float64 arrays that are not weakly typed: a weak leaf is another program for every
+    jit over the params (a controller's start-up QP compiled again, 7 s)."""
+    from safewbc_jax.deploy import Controller
+
+    sc = scenarios.get_scenario("arms")
+    p = sc.default_params()
+    assert jnp.asarray(0.5).weak_type            # the trap
+    p2 = p.replace(threshold={**p.threshold, "left_fist": 0.5}, mu=0.4)
+    p3 = apply_overrides(p, {"mu": 0.5, "threshold": {"left_fist": 0.2}})
+    ctl = Controller("arms", dataclasses.replace(p, mu=jnp.asarray(0.3)))
+    for q in (p2, p3, ctl.params):
+        leaves = jax.tree_util.tree_leaves(q)
+        assert len(leaves) == len(jax.tree_util.tree_leaves(p))
+        assert all(a.dtype == jnp.float64 and not a.weak_type for a in leaves)
+    assert float(p2.threshold["left_fist"]) == 0.5 and float(p3.mu) == 0.5
+    assert float(ctl.params.mu) == 0.3
 
 
 def test_params_overrides_validated(tmp_path):

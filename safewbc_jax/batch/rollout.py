@@ -93,7 +93,7 @@ class Plant:
     scenario: object
     model: object            # RobotModel (controller)
     mjx_model: object
-    data0: object            # mjx.Data at the stand keyframe (dtypes as mjx.step returns)
+    data0: object            # mjx.Data at the stand keyframe (precision.physics keeps its dtypes)
     ctx: control_step.Context
     qpos_idx: np.ndarray
     qvel_idx: np.ndarray
@@ -212,7 +212,6 @@ def _plant(scenario, barrier: bool, control_dt: float, safe_sets: tuple = (),
     mx, dx = mjx.put_model(ms), mjx.put_data(ms, d)
     if sim_dtype != jnp.float64:
         mx, dx = precision_mod.cast_floats((mx, dx), sim_dtype)
-    dx = precision_mod.as_step_output(precision_mod.physics(mjx.step, sim_dtype), mx, dx)
 
     tips, anchors = loop_site_pairs(ms)
     ids = foot_contact_ids(ms)
