@@ -58,7 +58,7 @@ def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
     opts = check_run_options(name, sc, duration=duration)
     push = (Push.single(opts["push"], opts["push_at"], opts["push_for"])
             if opts["push"] is not None else None)
-    cfg = RunConfig(duration=opts["duration"], settle=opts["settle"], speed=opts["speed"],
+    cfg = RunConfig(sc, duration=opts["duration"], settle=opts["settle"], speed=opts["speed"],
                     push=push, control_dt=control_dt, count_kernels=True)
     tsid_us, tsid_bad = [], [0]
     started = [False]
@@ -74,7 +74,7 @@ def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
         tsid_bad[0] += int(status != 0)
 
     t0 = time.perf_counter()
-    log, info = run(sc, sc.default_params(), cfg, observer=observer)
+    log, info = run(cfg, sc.default_params(), observer=observer)
     wall = time.perf_counter() - t0
     kern = info["kernels"]
     skip = metrics.LATENCY_SKIP

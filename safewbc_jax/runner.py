@@ -136,13 +136,14 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")
-    cfg = RunConfig(duration=duration, control_dt=control_dt, barrier=barrier, settle=settle,
-                    record_qps_every=record_qps_every, speed=speed,
+    # the scenario as resolved above: the user's safe sets are in it already
+    cfg = RunConfig(scenario, barrier, duration, settle, control_dt, speed,
+                    record_qps_every=record_qps_every,
                     push=None if push is None else Push.single(push, push_at, push_for))
     # a tqdm bar of the control steps on stderr (one line per phase off a terminal)
     bar = Progress(f"[safewbc] {name}", unit="steps", phase="compiling", quiet=quiet)
     try:
-        log, info = run(scenario, params, cfg,
+        log, info = run(cfg, params,
                         progress=None if quiet else lambda k, n, ph: bar.update_to(k, ph, n))
     except BaseException:
         bar.close()

@@ -9,7 +9,6 @@ cache that conftest sets up (it still traces)."""
 import dataclasses
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -28,10 +27,10 @@ def _runs(name, ref, far, duration):
     sc = scenarios.get_scenario(name, True, (ref,))
     (s,) = [b for b in sc.barriers if b.name not in ("left_fist",)]
     p = sc.default_params()
-    cfg = RunConfig(duration=duration)
-    on, info_on = run(sc, p, cfg)
-    off, info_off = run(sc, p.replace(threshold={**p.threshold, s.name: jnp.asarray(far)}),
-                        dataclasses.replace(cfg, count_kernels=True))
+    cfg = RunConfig(sc, duration=duration)
+    on, info_on = run(cfg, p)
+    off, info_off = run(dataclasses.replace(cfg, count_kernels=True),
+                        p.replace(threshold={**p.threshold, s.name: far}))
     assert not info_on["fell"] and not info_off["fell"]
     # the jitted step's kernels where asked for (benchmarks/controller_step.py), else none
     assert "kernels" not in info_on and info_off["kernels"]["total"] > 100

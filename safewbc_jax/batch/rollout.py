@@ -55,6 +55,7 @@ from safewbc_jax.modelinfo import (control_substeps, foot_contact_ids, loop_resi
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
 from safewbc_jax import safesets, userfile
+from safewbc_jax.runspec import RunSpec
 from safewbc_jax.scenario import Scenario
 from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario
 from safewbc_jax.sim.mujoco_loop import load_at_stand
@@ -64,18 +65,13 @@ BATCHED_SCENARIOS = tuple(SCENARIOS) + WALKING   # squat, bow, arms, walk, push
 
 
 @dataclasses.dataclass(frozen=True)
-class BatchConfig:
-    """What every rollout of a batch shares (static: one compile per config and batch
-    size). ``decimate`` k > 0 keeps every k-th control step's trajectory."""
+class BatchConfig(RunSpec):
+    """What every rollout of a batch shares: the run (``runspec.RunSpec``: scenario,
+    barrier, durations, control period, speed, the user's safe sets) and the batch's own
+    options (static: one compile per config and batch size, durations aside).
+    ``decimate`` k > 0 keeps every k-th control step's trajectory."""
 
-    scenario: str | Scenario = "squat"   # a name, "FILE.py:NAME", or a Scenario object
-    barrier: bool = True
-    duration: float | None = None     # s of motion (scenario default when None)
-    settle: float | None = None       # s of standing before it (scenario default)
-    control_dt: float = 1e-3
     decimate: int = 0
-    speed: float = 0.2                # walking: commanded mean forward speed (m/s)
-    safe_sets: tuple = ()             # the user's safe sets: "FILE.py:NAME" references
     precision: str = "float64"        # "float64" or "mixed" (safewbc_jax/precision.py)
 
 

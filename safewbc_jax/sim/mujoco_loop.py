@@ -19,24 +19,22 @@ import jax
 import numpy as np
 
 from safewbc_jax import metrics, paths, robot, statemap
-from safewbc_jax.control_step import fallen, schedule
+from safewbc_jax.control_step import fallen
 from safewbc_jax.deploy import Controller, Measurement
 from safewbc_jax.modelinfo import (control_substeps, foot_contact_ids, loop_site_pairs,
                                    sim_loop_residual)
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
-from safewbc_jax.scenarios import Scenario
+from safewbc_jax.runspec import RunSpec
 from safewbc_jax.solvers.result import fallback_name
 
 
-@dataclasses.dataclass
-class RunConfig:
-    duration: float | None = None      # s of motion (scenario default when None)
-    control_dt: float = 1e-3           # s
-    barrier: bool = True               # False: every safe set monitored only (no A-ECBF row)
-    settle: float | None = None        # s of standing before the motion (scenario default)
+@dataclasses.dataclass(frozen=True)
+class RunConfig(RunSpec):
+    """The run (``runspec.RunSpec``: scenario, barrier, durations, control period, speed,
+    the user's safe sets) and this loop's options."""
+
     record_qps_every: int = 0          # keep every k-th QP (full matrices) in the log; 0: none
-    speed: float = 0.2                 # walking: commanded forward speed (m/s)
     push: Push | None = None           # a push on the base (push.Push.single(force, at, for))
     count_kernels: bool = False        # the jitted step's kernels in the info ("kernels")
 
@@ -198,10 +196,11 @@ def rollout(sim: SimRobot, ctl: Controller, n_steps: int, push: Push | None = No
     return False, -1, plant
 
 
-def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=None,
+def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
         observer=None):
-    """Run one scenario in MuJoCo; returns (log dict of arrays, summary dict with the
-    finalized metric columns under "metrics", ``metrics.finalize``, and with
+    """Run ``cfg`` (its scenario; ``params`` None: the scenario's defaults) in MuJoCo;
+    returns (log dict of arrays, summary dict with the finalized metric columns under
+    "metrics", ``metrics.finalize``, and with
     ``cfg.count_kernels`` the kernels XLA runs for the jitted step under "kernels",
     ``Controller.kernels``).
 
@@ -219,9 +218,8 @@ def run(scenario: Scenario, params: ControllerParams, cfg: RunConfig, progress=N
     The log's ``stance`` and ``missed_touchdowns`` at step k are the domain step k's QP ran
     in (the gait advanced from step k's measurement).
     """
-    n_steps, settle, duration = schedule(scenario, cfg.duration, cfg.settle, cfg.control_dt)
-    ctl = Controller(scenario, params, cfg.control_dt, barrier=cfg.barrier, speed=cfg.speed,
-                     settle=settle, duration=duration)
+    n_steps, settle, duration = cfg.schedule()
+    ctl = cfg.controller(params)
     sim = SimRobot(ctl.motors.names, cfg.control_dt)
     ms, model, d = sim.ms, sim.model, sim.d
     scenario, walking = ctl.scenario, ctl.walking

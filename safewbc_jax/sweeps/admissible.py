@@ -22,8 +22,7 @@ def start_etas(spec: SweepSpec, name: str, thresholds: np.ndarray, perturb_v: np
     in blocks of BLOCK (one compiled shape)."""
     from safewbc_jax.batch import rollout
 
-    pl = rollout.plant(rollout.BatchConfig(scenario=spec.scenario, barrier=spec.barrier,
-                                                 safe_sets=tuple(spec.safe_sets)))
+    pl = rollout.plant(rollout.BatchConfig.of(spec.run))
     v = np.asarray(perturb_v, float)
     thr = np.asarray(thresholds, float)
     n = v.shape[0]

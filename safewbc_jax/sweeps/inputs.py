@@ -13,10 +13,9 @@ from safewbc_jax.sweeps.spec import SweepSpec
 
 def base_params(spec: SweepSpec):
     """The scenario's default ControllerParams with the spec's fixed overrides."""
-    from safewbc_jax import scenarios
     from safewbc_jax.params import apply_overrides
 
-    p = scenarios.get_scenario(spec.scenario, spec.barrier, spec.safe_sets).default_params()
+    p = spec.run.get_scenario().default_params()
     return apply_overrides(p, spec.params, f"{spec.path}: [params]")
 
 

@@ -69,9 +69,9 @@ def _die_with_parent(parent_pid: int):
 
 
 def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
-    """A worker process (module docstring). ``job``: scenario, barrier, safe_sets,
-    duration, settle, control_dt, cache_dir (walking's speed: the Controller's default, as
-    the mjx engine's ``BatchConfig``'s)."""
+    """A worker process (module docstring). ``job``: the sweep's run (``SweepSpec.run``,
+    a ``runspec.RunSpec``, the one the mjx engine's ``BatchConfig`` holds), cache_dir and
+    lockstep (the width of ``sim.lockstep.Lockstep``)."""
     _die_with_parent(parent_pid)
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
@@ -81,16 +81,14 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
         safewbc_jax.enable_x64()
         if job.get("cache_dir"):
             safewbc_jax.use_compile_cache(job["cache_dir"])
-        from safewbc_jax import control_step, metrics, scenarios
-        from safewbc_jax.deploy import Controller
+        from safewbc_jax import metrics
         from safewbc_jax.sim.lockstep import Lockstep
         from safewbc_jax.sim.mujoco_loop import SimRobot
 
-        sc = scenarios.get_scenario(job["scenario"], job["barrier"], tuple(job["safe_sets"]))
-        dt = job["control_dt"]
-        n_steps, _, _ = control_step.schedule(sc, job["duration"], job["settle"], dt)
-        ctl = Controller(sc, sc.default_params(), dt, barrier=job["barrier"],
-                         settle=job["settle"], duration=job["duration"])
+        run = job["run"]
+        dt = run.control_dt
+        n_steps, _, _ = run.schedule()
+        ctl = run.controller()
         sim = SimRobot(ctl.motors.names, dt)
         sim.reset()
         ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), warm_up=False)
@@ -186,9 +184,7 @@ class PoolExecutor:
             import jax
 
             self.cache_dir = getattr(jax.config, "jax_compilation_cache_dir", None)
-        return dict(scenario=s.scenario, barrier=s.barrier, safe_sets=list(s.safe_sets),
-                    duration=s.duration, settle=s.settle, control_dt=s.control_dt,
-                    cache_dir=self.cache_dir, lockstep=self.lockstep)
+        return dict(run=s.run, cache_dir=self.cache_dir, lockstep=self.lockstep)
 
     def _spawn(self, cpu) -> _Slot:
         import multiprocessing as mp

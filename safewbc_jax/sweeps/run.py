@@ -51,9 +51,7 @@ def real_executor():
                            "safewbc_jax.batch.rollout.run_batch") from None
 
     def execute(spec: SweepSpec, params, push: Push, perturb_v: np.ndarray) -> dict:
-        cfg = BatchConfig(scenario=spec.scenario, barrier=spec.barrier, duration=spec.duration,
-                          settle=spec.settle, control_dt=spec.control_dt, decimate=0,
-                          safe_sets=tuple(spec.safe_sets), precision=spec.precision)
+        cfg = BatchConfig.of(spec.run, precision=spec.precision)
         metrics, _ = run_batch(cfg, params, push, perturb_v)
         return metrics
 
@@ -78,9 +76,7 @@ def auto_batch(spec: SweepSpec, out: Path, engine: str, quiet=False) -> int:
         return spec.batch
     from safewbc_jax.batch.rollout import BatchConfig, largest_batch, memory_model
 
-    cfg = BatchConfig(scenario=spec.scenario, barrier=spec.barrier, duration=spec.duration,
-                      settle=spec.settle, control_dt=spec.control_dt,
-                      safe_sets=tuple(spec.safe_sets), precision=spec.precision)
+    cfg = BatchConfig.of(spec.run, precision=spec.precision)
     fixed, per = memory_model(cfg)
     limit = (dev.memory_stats() or {}).get("bytes_limit", 0)
     batch = max(1, min(spec.n_rollouts, largest_batch(fixed, per, limit)))

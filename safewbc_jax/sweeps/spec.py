@@ -141,6 +141,13 @@ class SweepSpec:
     precision: str = "float64"   # the mjx engine's BatchConfig.precision
 
     @property
+    def run(self):
+        """The ``runspec.RunSpec`` both engines take (walking's speed: the default)."""
+        from safewbc_jax.runspec import RunSpec
+        return RunSpec(self.scenario, self.barrier, self.duration, self.settle, self.control_dt,
+                       safe_sets=tuple(self.safe_sets))
+
+    @property
     def n_settings(self) -> int:
         if self.rows is not None:
             return len(self.rows)
@@ -476,8 +483,7 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
                      description=sw.get("description", ""), params=params, axes=axes,
                      push=push, perturb=perturb, tune=tune, barriers=tuple(enforced),
                      monitors=tuple(monitors) + (() if barrier_on else tuple(barriers)),
-                     outputs=outputs, pole_counts=pole_counts, safe_sets=safe_sets,
-                     precision=prec)
+                     outputs=outputs, pole_counts=pole_counts, safe_sets=safe_sets, precision=prec)
     if spec.n_rollouts > MAX_ROLLOUTS:
         raise SpecError(f"{src}: the grid times sweep.repeats gives {spec.n_rollouts} rollouts "
                         f"(more than {MAX_ROLLOUTS}); shrink the grid")
