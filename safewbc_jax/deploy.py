@@ -282,13 +282,13 @@ class Controller:
         reason = check_state(q, v, self.model.nq, self.model.nv)
         if reason != "ok":
             raise ValueError(f"start state refused: {reason}")
-        params = self.params if params is None else params
+        params = self.params if params is None else as_float64(params)
         if self.barrier:
             check_barrier_poles(self.model, self.scenario, params, jnp.asarray(q), jnp.asarray(v),
                                 self._start_checks)
         if not np.array_equal(q, self._start_qv[0]):
             self.start_data = control_step.start_data(self.model, self.scenario, jnp.asarray(q))
-        self.params = as_float64(params)
+        self.params = params
         self._fixed = jnp.asarray(self._flat["fixed"].pack((params, self.start_data,
                                                              self.run_values)))
         self._start_qv = (q, v)

@@ -137,8 +137,8 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")
     # the scenario as resolved above: the user's safe sets are in it already
-    cfg = RunConfig(scenario, barrier, duration, settle, control_dt, speed,
-                    record_qps_every=record_qps_every,
+    cfg = RunConfig(scenario, barrier=barrier, duration=duration, settle=settle,
+                    control_dt=control_dt, speed=speed, record_qps_every=record_qps_every,
                     push=None if push is None else Push.single(push, push_at, push_for))
     # a tqdm bar of the control steps on stderr (one line per phase off a terminal)
     bar = Progress(f"[safewbc] {name}", unit="steps", phase="compiling", quiet=quiet)

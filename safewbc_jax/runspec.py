@@ -53,8 +53,10 @@ class RunSpec:
         """(control steps, settle s, duration s), the defaults filled in
         (``control_step.schedule``; ValueError, naming ``what`` + the field, where one is
         out of range)."""
-        return control_step.schedule(self.get_scenario(), self.duration, self.settle,
-                                     self.control_dt, what)
+        return self._schedule(self.get_scenario(), what)
+
+    def _schedule(self, scenario, what: str = "") -> tuple[int, float, float]:
+        return control_step.schedule(scenario, self.duration, self.settle, self.control_dt, what)
 
     def controller(self, params=None, **options):
         """The deployable controller of this run (``deploy.Controller``; ``params`` None:
@@ -63,6 +65,7 @@ class RunSpec:
         ``avg_forward_speed`` over the same window."""
         from safewbc_jax.deploy import Controller
 
-        _, settle, duration = self.schedule()
-        return Controller(self.get_scenario(), params, self.control_dt, barrier=self.barrier,
-                          speed=self.speed, settle=settle, duration=duration, **options)
+        sc = self.get_scenario()          # once: a user's files are loaded each time
+        _, settle, duration = self._schedule(sc)
+        return Controller(sc, params, self.control_dt, barrier=self.barrier, speed=self.speed,
+                          settle=settle, duration=duration, **options)
