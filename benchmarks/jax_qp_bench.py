@@ -79,15 +79,14 @@ def generate(n):
     import mujoco
     import numpy as np
 
-    from safewbc_jax import controller, paths, robot, scenarios
+    from safewbc_jax import control_step, controller, paths, robot, scenarios
 
     mj = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
     rm = robot.from_mujoco(mj)
     sc = scenarios.get_scenario("arms")
     params = sc.default_params()
     q0 = jnp.asarray(mj.key_qpos[0])
-    start = scenarios.start_state(rm, q0)
-    start["y0"] = controller.output_start_values(rm, sc, q0)
+    start = control_step.start_data(rm, sc, q0)
 
     def fn(q, v, tau):
         terms = controller.robot_terms(rm, sc, q, v)

@@ -30,8 +30,8 @@ PERIOD = 4.0         # s
 def com_reference(tau, start):
     """The CoM over the stance origin at its start height, swaying sideways."""
     y = AMPLITUDE * jnp.sin(2.0 * jnp.pi * tau / PERIOD)
-    com0 = start["y0"]["com"]
-    return jnp.array([start["origin"][0], start["origin"][1] + y, com0[2]])
+    com0 = start.y0["com"]
+    return jnp.array([start.origin[0], start.origin[1] + y, com0[2]])
 
 
 def com_side(model, q, threshold, domain=None):
@@ -51,7 +51,7 @@ SIDE_SWAY = Scenario(
      Task(outputs.TorsoOrientation(), 100.0, 20.0, 10.0,
           reference=lambda tau, start: jnp.zeros(3) + 0.0 * tau),
      Task(outputs.JointPositions(name="arms", joints=outputs.ARM_JOINTS), 900.0, 60.0, 1.0,
-          reference=lambda tau, start: start["arm0"] + 0.0 * tau)),
+          reference=lambda tau, start: start.arm0 + 0.0 * tau)),
     safe_sets=(COM_SIDE,), duration=8.0)
 
 

@@ -186,15 +186,16 @@ class RunValues(NamedTuple):
     t_half: jax.Array
 
 
-def start_data(model, scenario, q) -> dict:
+def start_data(model, scenario, q) -> scenario_mod.Start:
     """The references' start data, measured at the start pose q (``scenario.start_state``,
     the outputs' start values; a gait's own, ``gait.start_data``). The settle time is the
     run's (``RunValues``), added by ``prepare``."""
     q = jnp.asarray(q)
     start = scenario_mod.start_state(model, q)
-    start["y0"] = controller.output_start_values(model, scenario, q)
+    start = dataclasses.replace(start, y0=controller.output_start_values(model, scenario, q))
     if scenario.gait is not None:
-        start.update(scenario.gait.start_data(model, q, start, scenario.blend))
+        start = dataclasses.replace(
+            start, gait=scenario.gait.start_data(model, q, start, scenario.blend))
     return start
 
 
@@ -270,7 +271,7 @@ def prepare(ctx: Context, params, start, run: RunValues, state: ControllerState,
         gait = jax.tree_util.tree_map(lambda a, b: jnp.where(advance, a, b), new, gait)
         domain = sc.gait.domain(gait, run.speed)
         v = sc.gait.controller_velocity(model, q, v, domain)
-        start = {**start, "settle": run.settle}
+        start = dataclasses.replace(start, settle=run.settle)
     terms = controller.robot_terms(model, sc, q, v, domain)
     qpm, aux = controller.build_qp(model, sc, params, terms, q, v, tau, start,
                                    jnp.asarray(sc.in_contact, dtype), domain=domain)

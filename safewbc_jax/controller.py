@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax import barriers, chains, contacts, qp, robot
+from safewbc_jax import outputs as outputs_mod
 from safewbc_jax.params import ControllerParams
 
 
@@ -84,10 +85,9 @@ def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
     bodies = robot.com_jacobians(model, kin)
     motion = robot.body_motion(model, kin, v)
     dyn = robot.dynamics_from_motion(model, bodies, motion)
-    dyn["domain"] = domain
-    outs = {o.name: o.evaluate(model, q, v, cache={**dyn, "kin": kin, "motion": motion})
-            for o in scenario.outputs}
-    return Terms(dyn["M"], dyn["h"], constraint_jacobian(model, q, kin),
+    step = outputs_mod.StepTerms(dyn, kin, motion, domain)
+    outs = {o.name: o.evaluate(model, q, v, step) for o in scenario.outputs}
+    return Terms(dyn.M, dyn.h, constraint_jacobian(model, q, kin),
                  constraint_drift(model, kin, motion), outs, kin, motion)
 
 

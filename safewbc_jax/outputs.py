@@ -9,11 +9,24 @@ new class here, nothing else changes.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax import robot, spatial
+
+
+class StepTerms(NamedTuple):
+    """What a control step has computed at (q, v) already, for the outputs to reuse
+    (``controller.robot_terms``): the dynamics and CoM terms, the forward kinematics and
+    the body motion (the frame outputs take their closed forms from these), the domain
+    (walking's swing outputs). An output computes a field left None itself."""
+
+    dyn: robot.Dynamics | None = None
+    kin: tuple | None = None
+    motion: robot.BodyMotion | None = None
+    domain: object = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,11 +49,9 @@ class Output:
     def value(self, model: robot.RobotModel, q):
         raise NotImplementedError
 
-    def evaluate(self, model: robot.RobotModel, q, v, cache=None):
-        """(y^a, J_y, J_y_dot v). ``cache``: optional dict of terms already computed for
-        this (q, v) by ``robot.dynamics_and_com``, and, from ``controller.robot_terms``,
-        the step's kinematics "kin" and body motion "motion" (outputs that can reuse them
-        do: the frame outputs then take their closed forms)."""
+    def evaluate(self, model: robot.RobotModel, q, v, terms: StepTerms | None = None):
+        """(y^a, J_y, J_y_dot v). ``terms``: the ``StepTerms`` already computed at this
+        (q, v), or None (outputs that can reuse them do)."""
         f = lambda qq: self.value(model, qq)  # noqa: E731
         return f(q), spatial.tangent_jacobian(f, q, model.nv), spatial.second_derivative_along(f, q, v)
 
@@ -56,9 +67,10 @@ class CoMPosition(Output):
     def value(self, model, q):
         return robot.com_position(model, q)
 
-    def evaluate(self, model, q, v, cache=None):
-        c = cache if cache is not None else robot.dynamics_and_com(model, q, v)
-        return c["com"], c["J_com"], c["Jdot_v_com"]
+    def evaluate(self, model, q, v, terms=None):
+        d = (terms.dyn if terms is not None and terms.dyn is not None
+             else robot.dynamics_and_com(model, q, v))
+        return d.com, d.J_com, d.Jdot_v_com
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +84,7 @@ class TorsoOrientation(Output):
     def value(self, model, q):
         return robot.torso_euler(model, q)
 
-    def evaluate(self, model, q, v, cache=None):
+    def evaluate(self, model, q, v, terms=None):
         return robot.torso_euler_terms(model, q, v)
 
 
@@ -95,7 +107,7 @@ class JointPositions(Output):
     def value(self, model, q):
         return q[np.array([model.joint_qadr(j) for j in self.joints])]
 
-    def evaluate(self, model, q, v, cache=None):
+    def evaluate(self, model, q, v, terms=None):
         sel = np.zeros((self.dim, model.nv))
         for i, j in enumerate(self.joints):
             sel[i, model.joint_dadr(j)] = 1.0
@@ -117,9 +129,9 @@ class FramePosition(Output):
     def value(self, model, q):
         return robot.frame_pose(model, q, self.frame)[0]
 
-    def evaluate(self, model, q, v, cache=None):
-        if cache is not None and "motion" in cache:   # closed form, this step's kinematics
-            return robot.site_point_terms(model, cache["kin"], cache["motion"], self.frame)
+    def evaluate(self, model, q, v, terms=None):
+        if terms is not None and terms.motion is not None:   # closed form, this step's
+            return robot.site_point_terms(model, terms.kin, terms.motion, self.frame)
         j, jdv = spatial.with_drift(lambda qq: robot.frame_jacobian(model, qq, self.frame)[:3], q, v)
         return self.value(model, q), j, jdv
 
@@ -140,11 +152,10 @@ class FrameOrientation(Output):
     def value(self, model, q):
         return spatial.euler_zyx(robot.frame_pose(model, q, self.frame)[1])
 
-    def evaluate(self, model, q, v, cache=None):
-        if cache is not None and "motion" in cache:   # closed form, this step's kinematics
-            return robot.frame_orientation_terms(model, cache["kin"], cache["motion"],
-                                                 self.frame)
-        return super().evaluate(model, q, v, cache)
+    def evaluate(self, model, q, v, terms=None):
+        if terms is not None and terms.motion is not None:   # closed form, this step's
+            return robot.frame_orientation_terms(model, terms.kin, terms.motion, self.frame)
+        return super().evaluate(model, q, v, terms)
 
 
 ARM_JOINTS = tuple(f"{s}-{j}" for s in ("left", "right")

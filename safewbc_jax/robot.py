@@ -428,7 +428,7 @@ def mass_matrix(model: RobotModel, q):
 
 def bias_forces(model: RobotModel, q, v):
     """h(q, v) = C(q, v) v + G(q): Coriolis, centrifugal and gravity forces (nv)."""
-    return dynamics_and_com(model, q, v)["h"]
+    return dynamics_and_com(model, q, v).h
 
 
 def com_jacobians(model: RobotModel, kin):
@@ -440,7 +440,17 @@ def com_jacobians(model: RobotModel, kin):
     return jp, jr, irot, com
 
 
-def dynamics_from_motion(model: RobotModel, bodies, motion: BodyMotion):
+class Dynamics(NamedTuple):
+    """M(q) (nv x nv), h(q, v) (nv), p_CoM (3), J_CoM (3 x nv), J_CoM_dot v (3)."""
+
+    M: jax.Array
+    h: jax.Array
+    com: jax.Array
+    J_com: jax.Array
+    Jdot_v_com: jax.Array
+
+
+def dynamics_from_motion(model: RobotModel, bodies, motion: BodyMotion) -> Dynamics:
     """M, h and the CoM terms from the body Jacobians ``bodies`` = com_jacobians(...) and
     the closed-form body motion ``motion`` = body_motion(...) of the same state."""
     jp, jr, irot, com = bodies
@@ -459,9 +469,9 @@ def _dynamics(model, jp, jr, irot, com, acc, alpha, omega):
     torque = jnp.einsum("bij,bj->bi", iworld, alpha) + jnp.cross(omega, iw)
     h = jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
     mtot = jnp.sum(model.body_mass)
-    return {"M": mass, "h": h, "com": model.body_mass @ com / mtot,
-            "J_com": jnp.einsum("b,bin->in", model.body_mass, jp) / mtot,
-            "Jdot_v_com": model.body_mass @ acc / mtot}
+    return Dynamics(M=mass, h=h, com=model.body_mass @ com / mtot,
+                    J_com=jnp.einsum("b,bin->in", model.body_mass, jp) / mtot,
+                    Jdot_v_com=model.body_mass @ acc / mtot)
 
 
 def dynamics_and_com(model: RobotModel, q, v):

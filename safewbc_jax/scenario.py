@@ -17,7 +17,9 @@ counts from the start of the motion.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -25,6 +27,25 @@ from safewbc_jax import references
 from safewbc_jax.params import ControllerParams, make_params
 from safewbc_jax.safesets import SafeSet, SafeSetError
 from safewbc_jax.tasks import Task
+
+
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["origin", "arm0", "y0", "settle", "gait"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class Start:
+    """The references' start data, measured at the start pose (``control_step.start_data``):
+    what a task's ``reference(tau, start)`` and ``planned(model, tau, start, q, v, domain)``
+    read. ``origin`` (3,): the stance frame's origin, the soles' midpoint on the floor
+    (z = 0); ``arm0`` (8,): the arm joint angles to hold (``outputs.ARM_JOINTS``); ``y0``:
+    {output name: its value at the start}; ``settle``: the seconds of standing before the
+    motion (the run's: ``control_step.prepare`` sets it, None before); ``gait``: a gait's
+    own start data (``walking.WalkStart``), None without a gait."""
+
+    origin: jax.Array
+    arm0: jax.Array
+    y0: dict = dataclasses.field(default_factory=dict)
+    settle: jax.Array | None = None
+    gait: object = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,7 +145,7 @@ class Scenario:
     def _timed(self, task: Task, tau, start):
         """A time-based reference with its AD derivatives, with the settle blend for tau < 0."""
         def settle_ref(s):
-            y0 = start["y0"][task.name]
+            y0 = start.y0[task.name]
             target = task.reference(jnp.zeros_like(s), start)
             w = references.smoothstep5((s + self.settle) / self.blend)
             return y0 + (target - y0) * w
@@ -141,7 +162,7 @@ class Scenario:
         return {t.name: t.mask(domain) for t in self.tasks if t.mask is not None}
 
 
-def start_state(model, q) -> dict:
+def start_state(model, q) -> Start:
     """Start data measured on the robot at the beginning of the run: the stance frame
     origin (midpoint of the soles on the ground) and the arm posture to hold (the
     outputs' start values y0 are added by ``control_step.start_data``)."""
@@ -151,4 +172,4 @@ def start_state(model, q) -> dict:
     pr, _ = robot.frame_pose(model, q, "right-sole")
     origin = 0.5 * (pl + pr)
     arm0 = q[np.array([model.joint_qadr(j) for j in outputs.ARM_JOINTS])]
-    return {"origin": origin.at[2].set(0.0), "arm0": arm0}
+    return Start(origin=origin.at[2].set(0.0), arm0=arm0)

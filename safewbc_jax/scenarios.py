@@ -58,7 +58,7 @@ def _double_support_tasks(com, torso, arms):
 
 
 def _held_arms(tau, start):
-    return start["arm0"] + 0.0 * tau
+    return start.arm0 + 0.0 * tau
 
 
 def _level_torso(tau, start):
@@ -67,25 +67,25 @@ def _level_torso(tau, start):
 
 def squat() -> Scenario:
     return Scenario("squat", _double_support_tasks(
-        lambda tau, start: start["origin"] + references.squat_com(tau), _level_torso,
+        lambda tau, start: start.origin + references.squat_com(tau), _level_torso,
         _held_arms), duration=8.0)
 
 
 def bow() -> Scenario:
     return Scenario("bow", _double_support_tasks(
-        lambda tau, start: start["origin"] + jnp.asarray(references.BOW_COM) + 0.0 * tau,
+        lambda tau, start: start.origin + jnp.asarray(references.BOW_COM) + 0.0 * tau,
         lambda tau, start: references.bow_torso(tau), _held_arms), duration=8.0)
 
 
 def _arms_com(tau, start):
-    com0 = start["y0"]["com"]
-    return jnp.array([start["origin"][0], start["origin"][1], com0[2]]) + 0.0 * tau
+    com0 = start.y0["com"]
+    return jnp.array([start.origin[0], start.origin[1], com0[2]]) + 0.0 * tau
 
 
 def arms() -> Scenario:
     return Scenario("arms", _double_support_tasks(
         _arms_com, _level_torso,
-        lambda tau, start: start["arm0"] + references.arm_offsets(tau)),
+        lambda tau, start: start.arm0 + references.arm_offsets(tau)),
         safe_sets=(fist_barrier("left"), fist_barrier("right", enforce=False)), duration=12.0)
 
 

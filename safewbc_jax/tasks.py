@@ -15,6 +15,9 @@ The reference is one of:
 * ``planned(model, tau, start, q, v, domain) -> (y^d, y^d_dot, y^d_ddot)``: a reference
   planned from the measured state at each control step (the ALIP swing foot).
 
+``start`` is the run's ``scenario.Start``, measured at the start pose: ``start.origin``,
+``start.arm0``, ``start.y0[output name]``.
+
 ``mask(domain) -> (dim,)`` (0/1) switches components off by domain (walking: the swing
 foot is tracked only in single support); None tracks every component always.
 """

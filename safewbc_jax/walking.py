@@ -44,6 +44,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -155,10 +156,10 @@ class SwingFootPosition(outputs.Output):
         pr = robot.frame_pose(model, q, "right-sole")[0]
         return pl if domain is None else _swing_select(domain, pl, pr)
 
-    def evaluate(self, model, q, v, cache=None):
-        domain = cache["domain"]
-        left = outputs.FramePosition(frame="left-sole").evaluate(model, q, v, cache)
-        right = outputs.FramePosition(frame="right-sole").evaluate(model, q, v, cache)
+    def evaluate(self, model, q, v, terms=None):
+        left = outputs.FramePosition(frame="left-sole").evaluate(model, q, v, terms)
+        right = outputs.FramePosition(frame="right-sole").evaluate(model, q, v, terms)
+        domain = terms.domain
         return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
 
 
@@ -175,10 +176,10 @@ class SwingFootOrientation(outputs.Output):
         right = outputs.FrameOrientation(frame="right-sole").value(model, q)
         return left if domain is None else _swing_select(domain, left, right)
 
-    def evaluate(self, model, q, v, cache=None):
-        domain = cache["domain"]
-        left = outputs.FrameOrientation(frame="left-sole").evaluate(model, q, v, cache)
-        right = outputs.FrameOrientation(frame="right-sole").evaluate(model, q, v, cache)
+    def evaluate(self, model, q, v, terms=None):
+        left = outputs.FrameOrientation(frame="left-sole").evaluate(model, q, v, terms)
+        right = outputs.FrameOrientation(frame="right-sole").evaluate(model, q, v, terms)
+        domain = terms.domain
         return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
 
 
@@ -271,11 +272,11 @@ DIAG_NAMES = ("p_x", "p_y", "L_x", "L_y", "z", "u_x", "u_y", "p_end_x", "p_end_y
 def _com_reference(model, tau, start, q, v, domain):
     """Standing: the CoM over the inside of the first stance foot at the walking height."""
     def com_ref(s):
-        target = jnp.concatenate([start["origin"][:2] + jnp.array([0.0, start["half_width"]
-                                                                   - START_SHIFT]),
+        target = jnp.concatenate([start.origin[:2] + jnp.array([0.0, start.gait.half_width
+                                                                - START_SHIFT]),
                                   jnp.array([H_WALK])])
-        y0 = start["y0"]["com"]
-        return y0 + (target - y0) * references.smoothstep5((s + start["settle"]) / start["blend"])
+        y0 = start.y0["com"]
+        return y0 + (target - y0) * references.smoothstep5((s + start.settle) / start.gait.blend)
 
     return references.with_derivatives(com_ref, jnp.minimum(tau, 0.0))
 
@@ -287,7 +288,7 @@ def _heading_reference(model, tau, start, q, v, domain):
 
 
 def _arms_reference(model, tau, start, q, v, domain):
-    return start["arm0"], jnp.zeros(8), jnp.zeros(8)
+    return start.arm0, jnp.zeros(8), jnp.zeros(8)
 
 
 def _swing_reference(model, tau, start, q, v, domain):
@@ -415,12 +416,20 @@ def gait_domain(g: GaitState, heading, v_des, step_width, xp=np) -> Domain:
                   swing0=g.swing0, heading=heading, v_des=v_des, step_width=step_width)
 
 
-def walking_start(model, q, start, blend) -> dict:
-    """What ``desired`` needs in the run's start data beyond ``scenarios.start_state``
-    (the run's settle time aside): the standing blend's length and how far the left sole
-    is from the stance origin, laterally (the CoM goes over its inside edge)."""
+class WalkStart(NamedTuple):
+    """Walking's own start data (``scenario.Start.gait``): the standing blend's length
+    (s) and how far the left sole is from the stance origin, laterally (m; the CoM goes
+    over its inside edge)."""
+
+    blend: jax.Array
+    half_width: jax.Array
+
+
+def walking_start(model, q, start, blend) -> WalkStart:
+    """What the walking references need in the run's start data beyond
+    ``scenario.start_state`` (``WalkStart``)."""
     pl = robot.frame_pose(model, q, "left-sole")[0]
-    return {"blend": jnp.asarray(blend), "half_width": pl[1] - start["origin"][1]}
+    return WalkStart(jnp.asarray(blend), pl[1] - start.origin[1])
 
 
 def first_step_domain(model, q, v_des=0.2):
@@ -478,7 +487,7 @@ class AlipGait:
 
     step_width: float = STEP_WIDTH
 
-    def start_data(self, model, q, start, blend) -> dict:
+    def start_data(self, model, q, start, blend) -> WalkStart:
         return walking_start(model, q, start, blend)
 
     def advance(self, gait: GaitState, prev_tau, dt, model, q, sole_force, weight):

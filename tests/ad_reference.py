@@ -11,6 +11,7 @@ from safewbc_jax import robot, spatial
 from safewbc_jax.chains import chain_jacobian
 from safewbc_jax.contacts import contact_jacobian, stacked_contact_jacobian
 from safewbc_jax.controller import Terms, constraint_jacobian
+from safewbc_jax.outputs import StepTerms
 from safewbc_jax.robot import RobotModel, _com_jacobians, _dynamics
 
 
@@ -65,6 +66,6 @@ def robot_terms_ad(model: RobotModel, scenario, q, v, domain=None) -> Terms:
 
     (bodies, J, kin), (dbodies, dJ, _) = jax.jvp(jacobians, (q,), (spatial.config_rate(q, v),))
     dyn = dynamics_from_jacobians(model, bodies, dbodies, v)
-    dyn["domain"] = domain
-    outs = {o.name: o.evaluate(model, q, v, cache=dyn) for o in scenario.outputs}
-    return Terms(dyn["M"], dyn["h"], J, dJ @ v, outs, kin, robot.body_motion(model, kin, v))
+    step = StepTerms(dyn=dyn, domain=domain)
+    outs = {o.name: o.evaluate(model, q, v, step) for o in scenario.outputs}
+    return Terms(dyn.M, dyn.h, J, dJ @ v, outs, kin, robot.body_motion(model, kin, v))

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax import controller, scenarios
+from safewbc_jax import control_step, controller, scenarios
 from safewbc_jax.params import ParamsError, apply_overrides, load_overrides, to_toml
 from safewbc_jax.solvers import reduce
 from safewbc_jax.solvers.piqp_path import PiqpSolver
@@ -20,8 +20,7 @@ def _arms_qp(ctrl_mj, rm, sc):
     params = sc.default_params()
     q = jnp.asarray(ctrl_mj.key_qpos[0])
     v = jnp.asarray(np.random.default_rng(3).normal(0, 0.2, rm.nv))
-    start = scenarios.start_state(rm, q)
-    start["y0"] = controller.output_start_values(rm, sc, q)
+    start = control_step.start_data(rm, sc, q)
 
     def fn(q, v, tau):
         terms = controller.robot_terms(rm, sc, q, v)

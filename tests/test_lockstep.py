@@ -113,8 +113,9 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     rows = lambda a: np.stack([np.asarray(a)] * 3)  # noqa: E731
     # the lockstep's one call a step: this step's prepare, the last step's conclude (none)
     fixed, state, tally = ctl.flat_arrays()
+    none = (np.zeros((3, ctl.prepared_layout()[0])), np.tile(ctl.no_solution(), (3, 1)))
     _, prep, packed, *_ = lock._vstep(rows(fixed), rows(state), rows(ctl.flat_measurement(meas)),
-                                      rows(tally), *lock._no_previous_step(3))
+                                      rows(tally), *none)
     prep, packed = np.array(prep), np.array(packed)        # writable copies
     _, red, _, checks = ctl._unpack_qp(packed)              # views into packed
     soft, hard = np.flatnonzero(red.soft[0] > 0), np.flatnonzero(red.soft[0] == 0)

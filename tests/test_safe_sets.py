@@ -141,7 +141,7 @@ def test_a_new_task_is_one_object_and_adds_exactly_its_cost(rm, ctrl_mj, stand):
     v = jnp.asarray(0.1 * rng.standard_normal(rm.nv))
     base = scenarios.get_scenario("squat")
     fist = outputs.FramePosition(frame="left-fist", name="fist_pos")
-    extra = Task(fist, 50.0, 10.0, 2.0, reference=lambda tau, start: start["y0"]["fist_pos"]
+    extra = Task(fist, 50.0, 10.0, 2.0, reference=lambda tau, start: start.y0["fist_pos"]
                  + jnp.array([0.0, 0.0, 0.01]) + 0.0 * tau)
     plus = Scenario("squat_fist", base.tasks + (extra,), duration=base.duration)
     params = plus.default_params()
@@ -154,7 +154,6 @@ def test_a_new_task_is_one_object_and_adds_exactly_its_cost(rm, ctrl_mj, stand):
         out = []
         for sc in (base, plus):
             start = control_step.start_data(rm, sc, q)
-            start["settle"] = 1.5
             terms = controller.robot_terms(rm, sc, q, v)
             qp, _ = controller.build_qp(rm, sc, sc.default_params(), terms, q, v, run["tau"],
                                         start, run["in_contact"])
@@ -163,7 +162,7 @@ def test_a_new_task_is_one_object_and_adds_exactly_its_cost(rm, ctrl_mj, stand):
         return out, (ya, jy, jdv), control_step.start_data(rm, plus, q)
 
     (qa, qb), (ya, jy, jdv), start = both(q, v)
-    yd = start["y0"]["fist_pos"] + jnp.array([0.0, 0.0, 0.01])
+    yd = start.y0["fist_pos"] + jnp.array([0.0, 0.0, 0.01])
     ystar = -50.0 * (ya - yd) - 10.0 * (jy @ v)
     w = 2.0
     dp = np.asarray(qb.P - qa.P)[: rm.nv, : rm.nv]

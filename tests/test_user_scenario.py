@@ -69,7 +69,7 @@ def test_batch_config_takes_a_scenario_object():
     assert [t.name for t in by_obj.scenario.tasks] == [t.name for t in by_ref.scenario.tasks]
     assert [b.name for b in by_obj.scenario.barriers] == ["com_side"]
     np.testing.assert_array_equal(by_obj.q0, by_ref.q0)
-    np.testing.assert_array_equal(by_obj.start["origin"], by_ref.start["origin"])
+    np.testing.assert_array_equal(by_obj.start.origin, by_ref.start.origin)
     p = default_params(obj, 3)
     assert p.poles["com_side"].shape[0] == 3
     off = plant(BatchConfig(obj, barrier=False)).scenario

@@ -2,6 +2,7 @@
 domain switching, the passive stance ankle and the contact mode in the QP, the swing leg's
 rigid-spring velocity, and a short walk in MuJoCo."""
 
+import dataclasses
 import json
 
 import jax
@@ -12,6 +13,7 @@ import pytest
 from conftest import random_state
 
 from safewbc_jax import chains, controller, scenarios, spatial, walking
+from safewbc_jax.outputs import StepTerms
 
 LEFT, RIGHT, BOTH = walking.LEFT, walking.RIGHT, walking.BOTH
 
@@ -45,8 +47,8 @@ def _domain(stance, heading=0.0):
 def test_swing_outputs_select_the_foot_opposite_the_stance(ctrl_mj, rm, stance):
     rng = np.random.default_rng(3)
     pos_out, rot_out = walking.SwingFootPosition(), walking.SwingFootOrientation()
-    ev_pos = jax.jit(lambda q, v, dom: pos_out.evaluate(rm, q, v, cache={"domain": dom}))
-    ev_rot = jax.jit(lambda q, v, dom: rot_out.evaluate(rm, q, v, cache={"domain": dom}))
+    ev_pos = jax.jit(lambda q, v, dom: pos_out.evaluate(rm, q, v, StepTerms(domain=dom)))
+    ev_rot = jax.jit(lambda q, v, dom: rot_out.evaluate(rm, q, v, StepTerms(domain=dom)))
     swing = "right" if stance == LEFT else "left"
     dom = _domain(stance)
     for _ in range(3):
@@ -89,10 +91,9 @@ def _qp_for(rm, ctrl_mj, stance, tau=0.1):
     params = sc.default_params()
     q = jnp.asarray(ctrl_mj.key_qpos[0])
     v = jnp.zeros(rm.nv)
-    start = scenarios.start_state(rm, q)
-    start["y0"] = controller.output_start_values(rm, sc, q)
-    start["settle"], start["blend"] = jnp.asarray(1.5), jnp.asarray(1.0)
-    start["half_width"] = jnp.asarray(0.11)
+    start = dataclasses.replace(
+        scenarios.start_state(rm, q), y0=controller.output_start_values(rm, sc, q),
+        settle=jnp.asarray(1.5), gait=walking.WalkStart(jnp.asarray(1.0), jnp.asarray(0.11)))
     dom = _domain(stance)
     dom = dom._replace(tau_step=jnp.asarray(tau))
     terms = controller.robot_terms(rm, sc, q, v, dom)

@@ -56,7 +56,7 @@ from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push, force_at
 from safewbc_jax import safesets, userfile
 from safewbc_jax.runspec import RunSpec
-from safewbc_jax.scenario import Scenario
+from safewbc_jax.scenario import Scenario, Start
 from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario
 from safewbc_jax.sim.mujoco_loop import load_at_stand
 from safewbc_jax.solvers import jax_qp
@@ -101,7 +101,7 @@ class Plant:
     tip_sites: np.ndarray
     anchor_sites: np.ndarray
     sole0_xy: np.ndarray
-    start: dict
+    start: Start
     q0: np.ndarray
     v0: np.ndarray
     n_sub: int

@@ -1,11 +1,12 @@
 """The deployment loop: MuJoCo (C) physics of ``models/scene.xml`` around the deployable
 controller (``safewbc_jax.deploy.Controller``), as it would run on the robot.
 
-Each control step: sense (MjData -> ``deploy.Measurement``: the controller's (q, v) through
-the StateMap, the soles' normal forces from the contacts) -> ``Controller.step`` (the
-control step every loop shares, ``control_step``) -> the motor torques into d.ctrl ->
-push (``push.force_at``) -> the physics advances control_dt -> sense again: the plant
-metrics (``metrics.plant_accumulate``), the fall test (``control_step.fallen``) -> log.
+The loop is ``sim.loop.simulate`` with one lane. Each control step: sense (``SimRobot``:
+MjData -> ``deploy.Measurement``, the controller's (q, v) through the StateMap, the soles'
+normal forces from the contacts) -> ``Controller.step`` (the control step every loop
+shares, ``control_step``; ``OneRobot``) -> the motor torques into d.ctrl -> push
+(``push.force_at``) -> the physics advances control_dt -> sense again: the plant metrics
+(``metrics.plant_accumulate``), the fall test (``control_step.fallen``) -> log (``run``).
 A settle period of standing precedes the motion (tau < 0); the paper's tau counts from
 its start.
 """
@@ -19,13 +20,12 @@ import jax
 import numpy as np
 
 from safewbc_jax import metrics, paths, robot, statemap
-from safewbc_jax.control_step import fallen
 from safewbc_jax.deploy import Controller, Measurement
-from safewbc_jax.modelinfo import (control_substeps, foot_contact_ids, loop_site_pairs,
-                                   sim_loop_residual)
+from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.params import ControllerParams
-from safewbc_jax.push import Push, force_at
+from safewbc_jax.push import Push
 from safewbc_jax.runspec import RunSpec
+from safewbc_jax.sim.loop import LaneStep, simulate
 from safewbc_jax.solvers.result import fallback_name
 
 
@@ -97,9 +97,9 @@ def load_at_stand():
 class SimRobot:
     """The simulated robot of the loop (``models/scene.xml`` in C MuJoCo), loaded once and
     reset for each rollout: the state map to the controller, the sensing (sole forces,
-    leg-on-leg contact), the motor commands, the push, the plant metrics. ``run`` steps
-    it through ``step``; the sweep workers' lanes (``sim.lockstep``: ``sibling``) through
-    ``advance``, with the plant metrics of all lanes in one call."""
+    leg-on-leg contact), the motor commands and the push, one control period of physics
+    (``advance``): a lane of ``sim.loop.simulate``. The lanes of ``sim.lockstep`` are
+    ``sibling``s."""
 
     def __init__(self, motor_names, control_dt: float):
         import mujoco
@@ -146,54 +146,65 @@ class SimRobot:
         other.reset()
         return other
 
-    def advance(self, motor, push_force, k, residual: bool = True):
+    def advance(self, motor, push_force, k):
         """Apply the motor torques and the push, advance one control period, sense step k's
-        outcome: returns (next Measurement, legs touching, rod loop residual; None with
-        ``residual`` False: ``sim.lockstep`` takes all lanes' at once)."""
+        outcome: returns (next Measurement, legs touching)."""
         d = self.d
         d.ctrl[self.motor_ids] = motor
         d.xfrc_applied[self.base_id, :3] = push_force
         for _ in range(self.n_sub):
             self._mj.mj_step(self.ms, d)
-        meas, legs = self.sense((k + 1) * self.control_dt)
-        return meas, legs, sim_loop_residual(self.ms, d, self.loop_pairs) if residual else None
+        return self.sense((k + 1) * self.control_dt)
 
-    def step(self, motor, push_force, k, plant, rec):
-        """``advance``, then the plant metrics: returns (next Measurement, legs touching,
-        rod loop residual, plant metrics after ``metrics.plant_accumulate``)."""
-        meas, legs, loop_res = self.advance(motor, push_force, k)
-        plant = metrics.plant_accumulate(plant, True, rec, self.d.site_xpos[self.sole_ids],
-                                         self.sole0, loop_res, legs)
-        return meas, legs, loop_res, plant
+
+class OneRobot:
+    """The control step of one robot for ``loop.simulate`` (one lane): ``Controller.step``,
+    then ``observer(meas)`` and the step's record (``Controller.record``: its conclude,
+    after the command is out). ``last``: (measurement, Command, HostRecord) of the last
+    step."""
+
+    def __init__(self, ctl: Controller, observer=None):
+        self.ctl, self.observer = ctl, observer
+        self.last = None
+        self._ready = []
+
+    def step(self, meas: list, live) -> LaneStep:
+        ctl = self.ctl
+        cmd = ctl.step(meas[0])
+        if self.observer is not None:
+            self.observer(meas[0])
+        hr = ctl.record
+        if hr is None:      # from a simulator this cannot happen
+            raise RuntimeError(f"measurement refused: {cmd.measurement}")
+        self.last = (meas[0], cmd, hr)
+        self._ready.append(hr.step)
+        return LaneStep({0: cmd.motor}, np.array([hr.step.tau]), {})
+
+    def concluded(self) -> list:
+        out, self._ready = self._ready, []
+        return out
+
+    def drain(self) -> list:
+        return self.concluded()
 
 
 def rollout(sim: SimRobot, ctl: Controller, n_steps: int, push: Push | None = None,
             on_step=None, observer=None):
-    """One rollout of the deployment loop from the robot's present state (``sim.reset``
-    and ``ctl.start``/``ctl.restart`` before): per control step the measurement,
-    ``Controller.step``, the motor torques and the push, the physics, the plant metrics,
-    the fall test. ``observer(meas)`` runs right after each ``Controller.step`` (``run``);
+    """One rollout of the deployment loop (``loop.simulate`` with one lane) from the
+    robot's present state (``sim.reset`` and ``ctl.start``/``ctl.restart`` before).
+    ``observer(meas)`` runs right after each ``Controller.step`` (``run``);
     ``on_step(k, meas, cmd, record, legs, loop_residual)`` after each step's physics
     (``run``'s log). Both are outside ``Controller.step``'s timing.
     Returns (fell, the step it fell at or -1, plant metrics)."""
-    plant = metrics.plant_init()
-    meas, _ = sim.sense(0.0)
-    for k in range(n_steps):
-        cmd = ctl.step(meas)
-        if observer is not None:
-            observer(meas)
-        hr = ctl.record
-        if hr is None:   # a measurement that could not enter the step (not from this loop)
-            return True, k, plant
-        rec = hr.step
-        force = force_at(push, rec.tau) if push is not None else 0.0
-        nxt, legs, loop_res, plant = sim.step(cmd.motor, force, k, plant, rec)
-        if on_step is not None:
-            on_step(k, meas, cmd, hr, legs, loop_res)
-        meas = nxt
-        if fallen(meas.q, meas.v):
-            return True, k, plant
-    return False, -1, plant
+    one = OneRobot(ctl, observer)
+    log = None
+    if on_step is not None:
+        def log(k, rec, legs, loop_res):
+            meas, cmd, hr = one.last
+            on_step(k, meas, cmd, hr, bool(legs[0]), float(loop_res[0]))
+    out = simulate([sim], one, n_steps, [push], [True], log, catch=False)
+    fell_step = int(out.fell_step[0])
+    return fell_step >= 0, fell_step, jax.tree_util.tree_map(lambda a: a[0], out.plant)
 
 
 def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
