@@ -11,7 +11,7 @@ of the two engines are compared rollout by rollout (the largest barrier-minimum
 difference, the falls).
 
     python benchmarks/sweep_engines.py [SPEC] [--duration S] [--batch B] [--chunks N]
-        [--workers N] [--json]
+        [--workers N] [--engines mjx mujoco] [--json]
 
 The default spec is sweeps/kalpha_poles.toml (arms, 10 s, batch 64); ``--duration``
 shortens its rollouts for a quicker figure (the step rate does not depend on it after
@@ -67,6 +67,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--chunks", type=int, default=2, help="chunks per engine (>= 2: the first "
                     "includes compilation, the rate is of the later ones)")
     ap.add_argument("--workers", type=int, default=None, help="mujoco workers (default: one per CPU)")
+    ap.add_argument("--engines", nargs="+", choices=("mjx", "mujoco"), default=["mjx", "mujoco"],
+                    help="the engines to run (default both; one alone: its figures, no ratio)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     if args.chunks < 2:
@@ -88,22 +90,25 @@ def main(argv=None) -> dict:
         f"{jax.default_backend()}")
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for engine in ("mjx", "mujoco"):
+        for engine in dict.fromkeys(args.engines):
             r = run_engine(spec, engine, args.chunks, batch, workers if engine == "mujoco" else None,
                            Path(tmp) / engine)
             rows[engine] = r
             say(f"{engine:7s}: first chunk {r['first_chunk_s']:7.1f} s (compilation included), "
                 f"then {r['robot_steps_per_s']:8.1f} robot-steps/s")
+    res = {"spec": args.spec, "duration": spec.duration, "batch": batch, "workers": workers,
+           **{e: {k: v for k, v in r.items() if k != "cols"} for e, r in rows.items()}}
+    if len(rows) < 2:
+        if args.json:
+            print(json.dumps(res))
+        return res
     a, b = rows["mujoco"]["cols"], rows["mjx"]["cols"]
     hmax = max(float(np.max(np.abs(a[k] - b[k]))) for k in a if k.startswith("barrier_min."))
-    res = {"spec": args.spec, "duration": spec.duration, "batch": batch, "workers": workers,
-           "mjx": {k: v for k, v in rows["mjx"].items() if k != "cols"},
-           "mujoco": {k: v for k, v in rows["mujoco"].items() if k != "cols"},
-           "ratio_mujoco_over_mjx": round(rows["mujoco"]["robot_steps_per_s"]
-                                          / rows["mjx"]["robot_steps_per_s"], 3),
-           "barrier_min_max_difference_m": hmax,
-           "falls": {"mjx": int(b["fell"].sum()), "mujoco": int(a["fell"].sum())},
-           "errors_mujoco": int(np.sum(a["error"] != ""))}
+    res.update({"ratio_mujoco_over_mjx": round(rows["mujoco"]["robot_steps_per_s"]
+                                               / rows["mjx"]["robot_steps_per_s"], 3),
+                "barrier_min_max_difference_m": hmax,
+                "falls": {"mjx": int(b["fell"].sum()), "mujoco": int(a["fell"].sum())},
+                "errors_mujoco": int(np.sum(a["error"] != ""))})
     say(f"mujoco / mjx robot-steps/s: {res['ratio_mujoco_over_mjx']:.2f}; barrier minima differ "
         f"by up to {hmax * 1e3:.3f} mm; falls mjx {res['falls']['mjx']}, mujoco "
         f"{res['falls']['mujoco']}; failed rollouts (mujoco) {res['errors_mujoco']}")

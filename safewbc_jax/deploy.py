@@ -320,7 +320,7 @@ class Controller:
         bounded = reduce.bounded_variables(qp0)
         p_blockdiag = reduce.p_block_diagonal(qp0)
         self._nx = int(qp0.P.shape[0])
-        self._no_sol = self._flat_sol(failed(self._nx))     # conclude's "no solution"
+        self._no_sol = self.flat_solution(failed(self._nx))     # conclude's "no solution"
         prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
         sol0 = failed(self._nx)
         self._flat = {k: FlatTree(t) for k, t in (("fixed", fixed), ("state", state0),
@@ -521,7 +521,7 @@ class Controller:
                   else np.stack([lane._last_u for lane in lanes]))
         u = control_step.hold_torque(res.x, usable[:, None], last_u, qpm.blocks)
         motor = lead.motors.arrays().to_motor(u)
-        sols = lead._flat_sol(res)
+        sols = lead.flat_solution(res)
         times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6 / len(lanes))
         t_out = (time.perf_counter() - t_in) * 1e6
         cmds = []
@@ -595,11 +595,13 @@ class Controller:
         """(q, v) of the last ``start`` or ``restart``."""
         return self._start_qv
 
-    def step_functions(self) -> tuple:
-        """(prepare, conclude) unjitted, on flat vectors, to vmap over lanes: prepare(fixed,
-        state, meas) -> (state, prepared, packed QP); conclude(fixed, tally, prepared,
-        solve) -> (tally, packed record). After ``start``."""
-        return self._prepare_fn, self._conclude_fn
+    def step_functions(self, jitted: bool = False) -> tuple:
+        """(prepare, conclude) on flat vectors: prepare(fixed, state, meas) -> (state,
+        prepared, packed QP); conclude(fixed, tally, prepared, solve) -> (tally, packed
+        record). Unjitted, to vmap over lanes; ``jitted``: the compiled ones ``step`` calls.
+        After ``start``."""
+        return (self._prepare, self._conclude) if jitted else (self._prepare_fn,
+                                                                self._conclude_fn)
 
     def flat_arrays(self) -> tuple:
         """(fixed, state, tally): this controller's flat vectors (numpy)."""
@@ -618,11 +620,16 @@ class Controller:
         flat = self._flat["prep"]
         return flat.size, int(flat.unpack(np.arange(flat.size, dtype=float)).tau)
 
+    def unpack_qp(self, packed) -> tuple:
+        """prepare's packed QP -> (full QP, reduced QP, the map back to X, the acceptance's
+        ``policy.Checks``), numpy views into ``packed`` (leading axes stay)."""
+        return self._unpack_qp(packed)
+
     def unpack_record(self, packed) -> tuple:
         """conclude's packed record -> (StepRecord, q, v, domain), numpy."""
         return self._unpack_out(packed)
 
-    def _flat_sol(self, res) -> np.ndarray:
+    def flat_solution(self, res) -> np.ndarray:
         """A host SolveResult (one QP's, or L's with a leading axis) as conclude's flat
         vector(s): x, then each scalar field (``FlatTree``'s layout), filled in place."""
         out = np.empty(np.shape(res.x)[:-1] + (self._nx + len(res) - 1,))

@@ -329,27 +329,31 @@ def test_control_step_refuses_in_the_graph(squat, stand, case):
     ctl.reset()
     good = ctl.step(Measurement(*stand, 0.0, np.zeros(2)))
     ctl.flush()
-    F = ctl._flat
+    prepare, conclude = ctl.step_functions(jitted=True)
+    fixed, state, tally0 = ctl.flat_arrays()
     st0 = ctl.state
     if case == "stale_time":   # a good state at the time of the last step
         (q, v), f, t = stand, np.zeros(2), 0.0
     else:
         (q, v, f), t = _bad(stand, case), ctl.control_dt
-    meas = F["meas"].pack(Measurement(q, v, t, f))
-    st_flat, prep, _ = ctl._prepare(ctl._fixed, ctl._state, meas)
-    st1 = F["state"].unpack(np.asarray(st_flat))
-    assert not bool(F["prep"].unpack(np.asarray(prep)).ok)
+    meas = ctl.flat_measurement(Measurement(q, v, t, f))
+    st_flat, prep, _ = prepare(fixed, state, meas)
+    lane = ctl.lane()          # reads the flat vectors back (its own copy)
+    lane.set_flat_arrays(st_flat, tally0)
+    st1 = lane.state
     assert float(st1.prev_t) == float(st0.prev_t) == 0.0 and float(st1.t0) == 0.0
     np.testing.assert_array_equal(st1.last_q, st0.last_q)
     np.testing.assert_array_equal(st1.last_v, st0.last_v)
     n = ctl.last_qp().P.shape[0]
     for x in (np.full(n, np.nan), np.ones(n)):   # a failed solve, a finite wrong answer
         # as the solver's SolveResult (status SOLVED, fallback NONE), flat for the jit
-        sol = ctl._flat_sol(failed(n)._replace(x=x, status=0, fallback=0, iterations=3,
-                                               eq_residual=0.0))
-        tally_flat, packed = ctl._conclude(ctl._fixed, ctl._tally, prep, sol)
-        tally = F["tally"].unpack(np.asarray(tally_flat))
+        sol = ctl.flat_solution(failed(n)._replace(x=x, status=0, fallback=0, iterations=3,
+                                                   eq_residual=0.0))
+        tally_flat, packed = conclude(fixed, tally0, prep, sol)
+        lane.set_flat_arrays(st_flat, tally_flat)
+        tally = lane.tally
         rec = ctl.unpack_record(packed)[0]
+        assert not bool(rec.ok)
         np.testing.assert_array_equal(rec.u, good.u)
         np.testing.assert_array_equal(tally.last_u, good.u)
         motor = ctl.motors.to_motor(rec.u)

@@ -96,14 +96,15 @@ def test_lockstep_lane_does_not_depend_on_its_neighbours(loop):
 @pytest.mark.slow
 def test_finish_lanes_is_finish_lane_by_lane(loop):
     """``Controller.finish_lanes`` (the lockstep's host side: PIQP per lane, the acceptance,
-    expansion, held torque and motor map for all lanes at once) against each lane's own
-    ``_finish`` (the same code with one lane) on the same rows of the vmapped prepare, with fresh solvers on both sides:
-    a lane solved as posed, one whose QP needs the relaxed QP (a soft row no torque can
-    meet), one that fails (a hard row no torque can meet: last torque held) and one whose
-    measurement was refused. Commands, counters and statuses exactly; the solve records
-    within 1e-12 relative / 1e-9 absolute (X = x0 + N u is one batched product against
-    one per lane: BLAS may round differently; the torques are N's identity block and come
-    out exactly)."""
+    expansion, held torque and motor map for all lanes at once) against the same with one
+    lane at a time (what one robot's ``step`` runs), on the same rows of the vmapped
+    prepare, with fresh solvers on both sides, after a first good step that gives each lane
+    a torque to hold: a lane solved as posed, one whose QP needs the relaxed QP (a soft row
+    no torque can meet), one that fails (a hard row no torque can meet: the first step's
+    torque held) and one whose measurement was refused. Commands, counters, statuses and
+    the torque each lane holds next exactly; the solve records within 1e-12 relative /
+    1e-9 absolute (X = x0 + N u is one batched product against one per lane: BLAS may
+    round differently; the torques are N's identity block and come out exactly)."""
     from safewbc_jax.deploy import Controller
 
     ctl, sim, lock = loop
@@ -117,7 +118,9 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     _, prep, packed, *_ = lock._vstep(rows(fixed), rows(state), rows(ctl.flat_measurement(meas)),
                                       rows(tally), *none)
     prep, packed = np.array(prep), np.array(packed)        # writable copies
-    _, red, _, checks = ctl._unpack_qp(packed)              # views into packed
+    first = [0, 0, 0, 0]
+    first_prep, first_packed = prep[first], packed[first]  # the good rows, before the edit
+    _, red, _, checks = ctl.unpack_qp(packed)               # views into packed
     soft, hard = np.flatnonzero(red.soft[0] > 0), np.flatnonzero(red.soft[0] == 0)
     for lane, row in ((1, soft[0]), (2, hard[0])):          # 0 u <= -1000
         red.G[lane, row] = checks.rows[lane, row] = 0.0
@@ -126,24 +129,34 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     prep, packed = prep[pick], packed[pick]
     reasons = ["ok", "ok", "ok", "t = 0.0 does not advance (last step at 0.0)"]
     batch, single = [ctl.lane() for _ in pick], [ctl.lane() for _ in pick]
-    for lane in batch + single:
-        lane._last_u = np.full(ctl.model.nu, 0.5)           # the torque a failed step holds
+    held, _ = Controller.finish_lanes(batch, first_prep, first_packed, ["ok"] * 4, [-1e-3] * 4,
+                                      0.0)
+    for i, lane in enumerate(single):
+        Controller.finish_lanes([lane], first_prep[i:i + 1], first_packed[i:i + 1], ["ok"],
+                                [-1e-3], 0.0)
     cmds, sols = Controller.finish_lanes(batch, prep, packed, reasons, [0.0] * 4, 0.0)
     assert [c.fallback for c in cmds] == ["none", "relaxed", "failed", "held"]
     for i, lane in enumerate(single):
-        want = lane._finish(prep[i], packed[i], reasons[i], 0.0, 0.0, 0.0)
-        got = cmds[i]
+        want, want_sol = Controller.finish_lanes([lane], prep[i:i + 1], packed[i:i + 1],
+                                                 [reasons[i]], [0.0], 0.0)
+        want, got = want[0], cmds[i]
         assert (got.solve_status, got.fallback, got.measurement) == \
             (want.solve_status, want.fallback, want.measurement)
         np.testing.assert_array_equal(got.u, want.u)
         np.testing.assert_array_equal(got.motor, want.motor)
-        np.testing.assert_allclose(sols[i], lane._pending[1], rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(sols[i], want_sol[0], rtol=1e-12, atol=1e-9)
         b = batch[i]
-        assert (b.steps, b.qp_failed, b.fallbacks, b._prev_t) == \
-            (lane.steps, lane.qp_failed, lane.fallbacks, lane._prev_t)
-        np.testing.assert_array_equal(b._last_u, lane._last_u)
-        assert b._pending is None
-    np.testing.assert_array_equal(cmds[2].u, np.full(ctl.model.nu, 0.5))
+        assert (b.steps, b.qp_failed, b.fallbacks) == (lane.steps, lane.qp_failed, lane.fallbacks)
+    np.testing.assert_array_equal(cmds[2].u, held[2].u)        # the first step's torque
+    np.testing.assert_array_equal(cmds[3].u, held[3].u)
+    assert np.abs(held[2].u).max() > 1.0                       # a real torque, not zeros
+    # the torque each lane holds next (a refused measurement), batch against one by one
+    refused = ["refused"] * 4
+    nxt, _ = Controller.finish_lanes(batch, prep, packed, refused, [1e-3] * 4, 0.0)
+    for i, lane in enumerate(single):
+        one, _ = Controller.finish_lanes([lane], prep[i:i + 1], packed[i:i + 1], refused[:1],
+                                         [1e-3], 0.0)
+        np.testing.assert_array_equal(nxt[i].u, one[0].u)
 
     # a user's solver of the solvers.host protocol with ``solve`` alone (no solve_lanes,
     # lane or reset): one ``solve`` per lane (``solvers.host.solve_lanes``), with PIQP's
@@ -163,9 +176,9 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     own = [ctl.lane() for _ in pick]
     for lane in own:
         lane.solver = OnlySolve()
-        lane._last_u = np.full(ctl.model.nu, 0.5)
+    Controller.finish_lanes(own, first_prep, first_packed, ["ok"] * 4, [-1e-3] * 4, 0.0)
     cmds2, _ = Controller.finish_lanes(own, prep, packed, reasons, [0.0] * 4, 0.0)
-    assert [lane.solver.calls for lane in own] == [1, 1, 1, 0]
+    assert [lane.solver.calls for lane in own] == [2, 2, 2, 1]
     for got, want in zip(cmds2, cmds):
         assert (got.solve_status, got.fallback, got.measurement) == \
             (want.solve_status, want.fallback, want.measurement)
