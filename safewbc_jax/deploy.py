@@ -347,7 +347,9 @@ class Controller:
 
         self._prepare_fn, self._conclude_fn = prepare, conclude   # unjitted: sim.lockstep
         self._prepare, self._conclude = jax.jit(prepare), jax.jit(conclude)
-        self._unpack_qp, self._unpack_out = qp_packer.unpack, out_packer.unpack
+        # the lane API, after start: packed QP -> (full QP, reduced QP, map back to X, Checks);
+        # packed record -> (StepRecord, q, v, domain); numpy views, leading axes kept
+        self.unpack_qp, self.unpack_record = qp_packer.unpack, out_packer.unpack
         self._fixed = jnp.asarray(F["fixed"].pack(fixed))
 
     def reset(self):
@@ -409,7 +411,7 @@ class Controller:
         r = self._record
         if r is not None and not isinstance(r, HostRecord):
             packed, x, res, t_qp, t_solve = r
-            rec, q, v, domain = self._unpack_out(packed)
+            rec, q, v, domain = self.unpack_record(packed)
             r = self._record = HostRecord(rec, q, v, domain, x,
                                           None if res is None else row(res, 0), t_qp, t_solve)
         return r
@@ -435,7 +437,7 @@ class Controller:
             raise RuntimeError("Controller.prepare_flat before start(q, v)")
         flat_state = jnp.asarray(self._flat["state"].pack(state))
         new, _, packed = self._prepare(self._fixed, flat_state, self.flat_measurement(meas))
-        return (self._flat["state"].unpack(np.asarray(new)), *self._unpack_qp(packed)[:3])
+        return (self._flat["state"].unpack(np.asarray(new)), *self.unpack_qp(packed)[:3])
 
     def metrics(self) -> dict:
         """The controller-side metric columns so far (``metrics.finalize``)."""
@@ -501,7 +503,7 @@ class Controller:
         Returns (the Commands; the conclude's flat solve records (L, .); the SolveResult
         (x over the full X, NaN where not usable; eq_residual of the full QP); X; usable)."""
         lead = lanes[0]
-        qpm, red, rmap, checks = lead._unpack_qp(packed)
+        qpm, red, rmap, checks = lead.unpack_qp(packed)
         t1 = time.perf_counter()
         res = host.solve_lanes([lane.solver for lane in lanes], red, checks)
         x = reduce.expand(res.x, rmap)
@@ -596,10 +598,10 @@ class Controller:
         return self._start_qv
 
     def step_functions(self, jitted: bool = False) -> tuple:
-        """(prepare, conclude) on flat vectors: prepare(fixed, state, meas) -> (state,
-        prepared, packed QP); conclude(fixed, tally, prepared, solve) -> (tally, packed
-        record). Unjitted, to vmap over lanes; ``jitted``: the compiled ones ``step`` calls.
-        After ``start``."""
+        """(prepare, conclude) on flat vectors after ``start``: prepare(fixed, state, meas)
+        -> (state, prepared, packed QP: ``unpack_qp``); conclude(fixed, tally, prepared,
+        solve) -> (tally, packed record: ``unpack_record``). Unjitted, to vmap over lanes;
+        ``jitted``: the compiled ones ``step`` calls."""
         return (self._prepare, self._conclude) if jitted else (self._prepare_fn,
                                                                 self._conclude_fn)
 
@@ -619,15 +621,6 @@ class Controller:
         """(size of prepare's flat Prepared vector, where tau sits in it)."""
         flat = self._flat["prep"]
         return flat.size, int(flat.unpack(np.arange(flat.size, dtype=float)).tau)
-
-    def unpack_qp(self, packed) -> tuple:
-        """prepare's packed QP -> (full QP, reduced QP, the map back to X, the acceptance's
-        ``policy.Checks``), numpy views into ``packed`` (leading axes stay)."""
-        return self._unpack_qp(packed)
-
-    def unpack_record(self, packed) -> tuple:
-        """conclude's packed record -> (StepRecord, q, v, domain), numpy."""
-        return self._unpack_out(packed)
 
     def flat_solution(self, res) -> np.ndarray:
         """A host SolveResult (one QP's, or L's with a leading axis) as conclude's flat
