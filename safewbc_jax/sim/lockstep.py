@@ -38,7 +38,7 @@ import numpy as np
 
 from safewbc_jax import metrics
 from safewbc_jax.deploy import Controller
-from safewbc_jax.sim.loop import LaneStep, simulate
+from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.sim.mujoco_loop import SimRobot
 
 
@@ -51,7 +51,7 @@ class Lockstep:
         if int(width) != width or width < 1:
             raise ValueError(f"lockstep width {width}: must be an integer >= 1")
         self.width = int(width)
-        self.leader, self.sim = leader, sim
+        self.leader = leader
         self.lanes = [leader.lane() for _ in range(self.width)]
         self.sims = [sim.sibling() for _ in range(self.width)]
         prepare, conclude = leader.step_functions()
@@ -116,7 +116,7 @@ class Lockstep:
         return out
 
 
-class Lanes:
+class Lanes(LaneControl):
     """The control step of a ``Lockstep``'s lanes for ``loop.simulate``, one rollout each:
     ``Controller.admit_lanes``, the one vmapped call a step (this step's prepare, the last
     step's conclude), ``Controller.finish_lanes``. A step's record comes one step later
@@ -124,6 +124,7 @@ class Lanes:
     lanes' flat vectors (W, .)."""
 
     def __init__(self, lock: Lockstep, lanes: list):
+        super().__init__()
         self.lock, self.lanes = lock, lanes
         W = len(lanes)
         self.fixed, self.state, self.tally = (np.stack(a) for a in
@@ -133,7 +134,6 @@ class Lanes:
         self.prev_prep = np.zeros((W, lock._prep_size))
         self.prev_sol = np.tile(self.no_sol, (W, 1))
         self.pending = None     # the lanes the last step's conclude is for
-        self._ready = []
 
     def _call(self):
         return self.lock._vstep(self.fixed, self.state, self.flat, self.tally,
@@ -142,7 +142,7 @@ class Lanes:
     def _take(self, concluded, new_tally, packed_out):
         """The tally after a step's conclude (for the lanes it ran on), and its record."""
         self.tally = np.where(concluded[:, None], np.asarray(new_tally), self.tally)
-        self._ready.append(self.lock.leader.unpack_record(np.asarray(packed_out))[0])
+        self.conclude(self.lock.leader.unpack_record(np.asarray(packed_out))[0])
 
     def step(self, meas: list, live) -> LaneStep:
         t_in = time.perf_counter()
@@ -181,10 +181,6 @@ class Lanes:
                 failed[i], live[i] = f"{type(e).__name__}: {e}", False
         self.prev_prep, self.prev_sol, self.pending = prep_np, sols, live
         return LaneStep(motor, prep_np[:, self.lock._tau_at], failed)
-
-    def concluded(self) -> list:
-        out, self._ready = self._ready, []
-        return out
 
     def drain(self) -> list:
         if self.pending is not None:     # the last step's conclude (the prepare's rows unused)

@@ -20,7 +20,7 @@ MJX rollout (``batch.rollout``) scans the same definitions of a step: ``force_at
 from __future__ import annotations
 
 import collections
-from typing import Callable, NamedTuple, Protocol
+from typing import Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -41,18 +41,30 @@ class LaneStep(NamedTuple):
     failed: dict
 
 
-class LaneControl(Protocol):
-    """The control step of W lanes."""
+class LaneControl:
+    """The control step of W lanes (a subclass gives ``step``). A step's record goes to
+    ``conclude`` when it comes; the loop takes them with ``concluded``."""
+
+    def __init__(self):
+        self._ready = []
 
     def step(self, meas: list, live: np.ndarray) -> LaneStep:
         """One control step of the ``live`` lanes from their measurements."""
+        raise NotImplementedError
+
+    def conclude(self, record) -> None:
+        """A step's record has come: a ``StepRecord`` of the W lanes (leading axis W, or
+        scalars where W = 1), in step order."""
+        self._ready.append(record)
 
     def concluded(self) -> list:
-        """The records of the steps concluded since the last call, oldest first: each
-        a ``StepRecord`` of the W lanes (leading axis W, or scalars where W = 1)."""
+        """The records that came since the last call, oldest first."""
+        out, self._ready = self._ready, []
+        return out
 
     def drain(self) -> list:
         """After the last step: the records still to come (``concluded``)."""
+        return self.concluded()
 
 
 class Outcome(NamedTuple):

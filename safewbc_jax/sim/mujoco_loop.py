@@ -25,7 +25,7 @@ from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_
 from safewbc_jax.params import ControllerParams
 from safewbc_jax.push import Push
 from safewbc_jax.runspec import RunSpec
-from safewbc_jax.sim.loop import LaneStep, simulate
+from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.solvers.result import fallback_name
 
 
@@ -157,16 +157,16 @@ class SimRobot:
         return self.sense((k + 1) * self.control_dt)
 
 
-class OneRobot:
+class OneRobot(LaneControl):
     """The control step of one robot for ``loop.simulate`` (one lane): ``Controller.step``,
     then ``observer(meas)`` and the step's record (``Controller.record``: its conclude,
     after the command is out). ``last``: (measurement, Command, HostRecord) of the last
     step."""
 
     def __init__(self, ctl: Controller, observer=None):
+        super().__init__()
         self.ctl, self.observer = ctl, observer
         self.last = None
-        self._ready = []
 
     def step(self, meas: list, live) -> LaneStep:
         ctl = self.ctl
@@ -177,15 +177,8 @@ class OneRobot:
         if hr is None:      # from a simulator this cannot happen
             raise RuntimeError(f"measurement refused: {cmd.measurement}")
         self.last = (meas[0], cmd, hr)
-        self._ready.append(hr.step)
+        self.conclude(hr.step)
         return LaneStep({0: cmd.motor}, np.array([hr.step.tau]), {})
-
-    def concluded(self) -> list:
-        out, self._ready = self._ready, []
-        return out
-
-    def drain(self) -> list:
-        return self.concluded()
 
 
 def rollout(sim: SimRobot, ctl: Controller, n_steps: int, push: Push | None = None,
