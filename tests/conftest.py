@@ -26,11 +26,15 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # Two tiers: `pytest -m "not slow"` is the fast one (minutes), the full suite adds the
 # tests marked slow (those that compile an MJX loop, run a closed loop or start a
 # subprocess run). An unmarked test whose setup and call together take longer than this
-# fails and names itself, so the fast tier stays fast. Fixtures are session-scoped and
-# shared, so the first test to use one pays its setup: mark that test slow too. With
-# several xdist workers sharing the cores, a test's wall time also counts the time it
-# waited for the others' CPU; there it is measured by the CPU time it used (its process's
-# threads and its finished subprocesses) where that is less than its wall time.
+# fails and names itself, so the fast tier stays fast. A module-scoped fixture is set up
+# once for the unmarked tests of its module that use it, and each of them is charged its
+# share (its setup time / their number) in place of the whole, whichever test happened to
+# run first: its cost is theirs together (a jitted solver compiled once for five tests).
+# A session-scoped fixture stays charged whole to the test that sets it up: mark that test
+# slow where it is costly. With several xdist workers sharing the cores, a test's wall
+# time also counts the time it waited for the others' CPU; there it is measured by the
+# CPU time it used (its process's threads and its finished subprocesses) where that is
+# less than its wall time.
 try:
     FAST_LIMIT_S = float(os.environ.get("SAFEWBC_FAST_LIMIT_S", "20"))
 except ValueError:
@@ -39,6 +43,8 @@ except ValueError:
 _SETUP_S = pytest.StashKey[float]()
 _CPU0 = pytest.StashKey[float]()
 _WALL0 = pytest.StashKey[float]()
+_SHARED = pytest.StashKey[list]()      # (wall s, CPU s, users) of module fixtures set up
+_SETTING_UP: list = [None]             # the test whose setup is running
 
 
 def _cpu_s() -> float:
@@ -54,7 +60,31 @@ def _shared_cores() -> bool:
 def pytest_runtest_setup(item):
     item.stash[_CPU0] = _cpu_s()
     item.stash[_WALL0] = time.time()
+    item.stash[_SHARED] = []
+    _SETTING_UP[0] = item
+    try:
+        yield
+    finally:
+        _SETTING_UP[0] = None
+
+
+def _fast_users(item, name: str) -> int:
+    """The unmarked tests of ``item``'s module that use fixture ``name``."""
+    return sum(1 for it in item.session.items
+               if it.path == item.path and not it.get_closest_marker("slow")
+               and name in getattr(it, "fixturenames", ()))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_fixture_setup(fixturedef, request):
+    """Times a module-scoped fixture's own setup (its dependencies are set up before this
+    hook runs) for the guard's share, on the test whose setup ran it."""
+    cpu0, wall0 = _cpu_s(), time.time()
     yield
+    item = _SETTING_UP[0]
+    if fixturedef.scope == "module" and item is not None:
+        users = max(1, _fast_users(item, fixturedef.argname))
+        item.stash[_SHARED].append((time.time() - wall0, _cpu_s() - cpu0, users))
 
 
 # SAFEWBC_TEST_CPU_LOG=FILE: one tab-separated line a test (worker, test, start and end
@@ -81,12 +111,18 @@ def pytest_runtest_makereport(item, call):
         return
     if rep.when != "call" or not rep.passed or item.get_closest_marker("slow"):
         return
-    took = item.stash.get(_SETUP_S, 0.0) + call.duration
+    shared = item.stash.get(_SHARED, [])
+    # each module fixture set up here: its share in place of the whole
+    rebate_wall = sum(w * (1 - 1 / n) for w, _, n in shared)
+    rebate_cpu = sum(c * (1 - 1 / n) for _, c, n in shared)
+    took = item.stash.get(_SETUP_S, 0.0) + call.duration - rebate_wall
     what = "setup and call"
     if _shared_cores() and _CPU0 in item.stash:
-        cpu = _cpu_s() - item.stash[_CPU0]
+        cpu = _cpu_s() - item.stash[_CPU0] - rebate_cpu
         if cpu < took:
             took, what = cpu, "CPU time of setup and call, the cores shared with other workers"
+    if shared:
+        what += ", with its share of the module fixtures it set up"
     if took > FAST_LIMIT_S:
         rep.outcome = "failed"
         rep.longrepr = (f"{item.nodeid} took {took:.1f} s ({what}) without the "
@@ -105,9 +141,9 @@ def pytest_runtest_makereport(item, call):
 # suite's --durations on a 2-core CPU.
 GROUPS = {"test_sweeps_rollouts.py": "sweep_engines", "test_tune_rollouts.py": "sweep_engines",
           "test_mjx_closed_loop.py": "deployment_runs", "test_closed_loop.py": "deployment_runs",
-          "test_walking.py": "deployment_runs"}
-LONG_FIRST = ("test_precision.py", "sweep_engines", "deployment_runs", "test_user_scenario.py",
-              "test_cuda_lowering.py", "test_examples.py", "test_mjx_batch.py")
+          "test_walking.py": "deployment_runs", "test_precision.py": "deployment_runs"}
+LONG_FIRST = ("deployment_runs", "sweep_engines", "test_user_scenario.py", "test_examples.py",
+              "test_cuda_lowering.py", "test_mjx_batch.py")
 MAX_WORKERS = 4     # each worker may hold a closed-loop compile of a few GB
 
 

@@ -26,10 +26,14 @@ pytestmark = pytest.mark.slow      # traces the MJX closed loop (~10-20 s a scen
 
 BATCH = 1024
 USER_SET = str(Path(__file__).resolve().parents[1] / "examples/bow_torso_lean.py:TORSO_LEAN")
-# every batched scenario's program; "push" is left out: it is the walk's (walking.make_scenario
-# differs in the name and the default duration only, and the duration is a run-time value);
-# "bow" runs with a user's safe set added, the same program with one more barrier row
-CASES = [(s, ()) for s in R.BATCHED_SCENARIOS if s not in ("push", "bow")] + [("bow", (USER_SET,))]
+# one program of each shape of the batched scenarios: no barrier (squat), one barrier
+# row (bow with a user's safe set added) and walking. Left out: "push" is the walk's program
+# (walking.make_scenario differs in the name and the default duration only, and the
+# duration is a run-time value); "arms" is the standing QP with one barrier row too, of the
+# same sizes as bow's with the user's safe set (the fist's output in place of the pitch),
+# and bow alone is squat's QP
+CASES = [("squat", ()), ("bow", (USER_SET,)), ("walk", ())]
+assert {s for s, _ in CASES} | {"arms", "push"} == set(R.BATCHED_SCENARIOS)
 
 
 def custom_calls(mlir: str):

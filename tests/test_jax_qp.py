@@ -263,17 +263,17 @@ def test_user_level_jit_vmap_matches_solve_batch(data, jax_result):
 # ---------------------------------------------------------------- chunked batches
 
 @pytest.mark.slow
-def test_chunked_batch_matches_unchunked(data):
+def test_chunked_batch_matches_unchunked(data, jax_result):
     """``solve_batch(chunk=8)`` on 20 QPs (3 chunks of 7, padded with a copy of the last
-    QP) gives the unchunked solve's results: the padding is stripped and no QP's result
-    depends on the other QPs of its chunk. A soft- and a hard-infeasible QP sit in the
-    second and third chunks, so the first chunk skips the relaxed solve that the others
-    run (the batch-level cond is per chunk)."""
+    QP) gives the module's solve of all 1,149 QPs (chunks of 64 on the CPU) for the same
+    QPs: the padding is stripped and no QP's result depends on the other QPs of its chunk.
+    A soft- and a hard-infeasible QP sit in the second and third chunks, so the first chunk
+    skips the relaxed solve that the others run (the batch-level cond is per chunk)."""
     nrec = data["nrec"]
     rec = np.linspace(0, nrec - 1, 18).astype(int)
     idx = np.r_[rec[:10], nrec, rec[10:], nrec + N_INFEAS]       # soft at 10, hard at 19
     qps = _batch(data["qps"], idx)
-    ref = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, chunk=None))
+    ref = jax.tree_util.tree_map(lambda a: a[idx], jax_result)
     r = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps, chunk=8))
     assert r.x.shape == ref.x.shape == (20, data["qps"]["P"].shape[1])
     assert r.fallback[10] == jax_qp.FALLBACK_RELAXED and r.fallback[19] == jax_qp.FALLBACK_FAILED

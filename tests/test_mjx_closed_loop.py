@@ -10,9 +10,9 @@ PIQP, safewbc_jax.sim.mujoco_loop): the same scenario and parameters through bot
   keep their float64 outcomes;
 * bad input is refused before anything compiles.
 
-Compiles three closed-loop functions (~2 minutes each on a 2-core CPU; the arms one, batch 2
-without trajectories, is the one the sweep tests compile too, and JAX's persistent
-compilation cache, enabled in conftest, shares it).
+Compiles four closed-loop functions (~2 minutes each on a 2-core CPU; the arms one, float64
+at batch 2 without trajectories, is the one ``test_precision.py``'s arms runs load from
+JAX's persistent compilation cache, enabled in conftest).
 """
 
 from __future__ import annotations
@@ -55,16 +55,18 @@ def test_squat_com_matches_deployment_path(squat):
 
 @pytest.fixture(scope="module")
 def arms(arms_deployment):
-    """Three rollouts in chunks of two (``run_batch(chunk=2)``: two chunks, the second
-    padded with a copy of the third rollout): the unpushed one, one pushed over (800 N),
-    and one pushed lightly (40 N). Each must come back in its own place: rollout 0
-    against the MuJoCo loop, the fall in rollout 1 only, rollout 2 standing."""
-    b = 3
+    """Two rollouts in one batch: the unpushed one and one pushed over (800 N). Rollout 0
+    against the MuJoCo loop, the fall in rollout 1 only. Two rollouts, float64, no
+    records: the program ``test_precision.py``'s float64 arms run and the accelerator
+    benchmark's reference load from the persistent compilation cache (conftest runs these
+    files in this order, on one worker). Chunking, padding included, is held to the
+    unchunked batch in ``test_jax_qp.py`` and ``test_chunking.py``."""
+    b = 2
     params = default_params("arms", b)
-    push = Push(force=np.array([[0.0, 0.0, 0.0], [0.0, 800.0, 0.0], [0.0, 40.0, 0.0]]),
-                at=np.array([0.0, 0.3, 0.3]), duration=np.array([0.0, 0.3, 0.3]))
+    push = Push(force=np.array([[0.0, 0.0, 0.0], [0.0, 800.0, 0.0]]),
+                at=np.array([0.0, 0.3]), duration=np.array([0.0, 0.3]))
     cfg = BatchConfig("arms", duration=ARMS_S, settle=SETTLE)
-    met, _ = run_batch(cfg, params, push, np.zeros((b, 54)), chunk=2)
+    met, _ = run_batch(cfg, params, push, np.zeros((b, 54)))
     return met, arms_deployment[0]    # the MuJoCo + PIQP run: conftest, 8 s after 1 s
 
 
@@ -85,11 +87,11 @@ def test_arms_barrier_minima_match_deployment_path(arms):
 
 @pytest.mark.slow
 def test_fallen_rollout_is_flagged_and_isolated(arms):
+    """The pushed rollout falls and is frozen; its neighbour, rollout 0, is the one the
+    previous test holds to the MuJoCo loop, so the fall did not reach it."""
     met, _ = arms
-    assert met["fell"].tolist() == [False, True, False]
-    # the light push moved the robot (not a copy of rollout 0 or of the padding)
-    assert met["tracking_rms.com"][2] > met["tracking_rms.com"][0]
-    assert met["qp_failed"][2] == 0
+    assert met["fell"].tolist() == [False, True]
+    assert met["qp_failed"][0] == 0
     t_fall = met["fell_time_s"][1]
     assert SETTLE + 0.3 < t_fall < SETTLE + ARMS_S
     for key, v in met.items():   # nothing NaN where the metric is defined
@@ -97,7 +99,6 @@ def test_fallen_rollout_is_flagged_and_isolated(arms):
             assert not np.any(np.isnan(v.astype(float))), key
     # while falling the feet lose the floor: no ZMP (-inf, as the MuJoCo loop reports it)
     assert met["zmp_margin_min"][0] > 0.0 and met["zmp_margin_min"][1] < 0.0
-    assert met["zmp_margin_min"][2] > 0.0
 
 
 WALK_S, WALK_SETTLE = 2.2, 1.2     # the conftest deployment walk: six steps

@@ -32,9 +32,23 @@ def test_setup_and_call_add_up(costly):
 @pytest.mark.slow
 def test_sleeps_marked():
     time.sleep(0.8)
+
+@pytest.fixture(scope="module")
+def shared():
+    time.sleep(0.9)
+
+# three unmarked users of a 0.9 s module fixture: charged 0.3 s each, whichever sets it up
+def test_shares_a_fixture_1(shared):
+    pass
+
+def test_shares_a_fixture_2(shared):
+    pass
+
+def test_shares_a_fixture_3(shared):
+    pass
 """)
     res = pytester.runpytest_subprocess("-p", "no:cacheprovider")
-    res.assert_outcomes(passed=2, failed=2)
+    res.assert_outcomes(passed=5, failed=2)
     out = res.stdout.str()
     for name in ("test_sleeps_unmarked", "test_setup_and_call_add_up"):
         assert f"test_guarded.py::{name} took" in out, out
@@ -55,14 +69,33 @@ import time
 def test_waits():
     time.sleep(0.8)
 
-def test_computes():
+def _busy(s):
     t0 = time.process_time()
-    while time.process_time() - t0 < 0.8:
+    while time.process_time() - t0 < s:
         pass
+
+def test_computes():
+    _busy(0.8)
+
+import pytest
+
+@pytest.fixture(scope="module")
+def compiled():
+    _busy(0.9)
+
+# 0.9 CPU s set up once for three unmarked tests: 0.3 s each
+def test_shares_1(compiled):
+    pass
+
+def test_shares_2(compiled):
+    pass
+
+def test_shares_3(compiled):
+    pass
 """)
     res = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-p", "no:xdist")
     out = res.stdout.str()
     # this test has failed now and then inside the full fast tier, never alone: the
     # output names which test the guard held, and with how much time
-    assert res.parseoutcomes().get("passed") == 1 and res.parseoutcomes().get("failed") == 1, out
-    assert "test_shared.py::test_computes took" and "CPU time" in out, out
+    assert res.parseoutcomes().get("passed") == 4 and res.parseoutcomes().get("failed") == 1, out
+    assert "test_shared.py::test_computes took" in out and "CPU time" in out, out
