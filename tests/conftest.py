@@ -3,6 +3,10 @@ import tempfile
 import time
 from pathlib import Path
 
+# before JAX starts its CPU backend: the XLA:CPU flags the package sets on import
+# (safewbc_jax.CPU_XLA_FLAGS), as in the command and every process the tests start
+import safewbc_jax  # noqa: F401
+
 import jax
 import numpy as np
 import pytest

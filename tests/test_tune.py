@@ -4,6 +4,7 @@ with an analytic stand-in for the rollouts (``executor=``; barriers off, so no T
 compile). The real rollouts on both engines are in test_tune_rollouts.py."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,12 +14,17 @@ from safewbc_jax.sweeps import tuning
 from safewbc_jax.sweeps.search import Cmaes, GridRefine
 from safewbc_jax.sweeps.spec import SpecError, load_spec
 
-SPEC = """
+ROOT = Path(__file__).resolve().parents[1]
+LEAN = f"{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"
+# with a user's safe set (monitored: barriers off), which the params file's run command
+# must carry
+SPEC = f"""
 [sweep]
 scenario = "arms"
 barrier = false
 repeats = 2
 batch = 8
+safe_sets = ["{LEAN}"]
 [grid]
 "push.magnitude" = [0.0, 10.0]
 [perturb]
@@ -27,10 +33,10 @@ joints = 0.05
 population = 6
 budget = 240
 validate = 16
-objective = { "tracking_rms.arms" = 1.0, "torque_ratio_max" = 0.5 }
+objective = {{ "tracking_rms.arms" = 1.0, "torque_ratio_max" = 0.5 }}
 [tune.params]
-"gain_scale.arms" = { bounds = [0.1, 10.0] }
-"weight_scale.com" = { bounds = [0.1, 10.0], scale = "log" }
+"gain_scale.arms" = {{ bounds = [0.1, 10.0] }}
+"weight_scale.com" = {{ bounds = [0.1, 10.0], scale = "log" }}
 """
 
 
@@ -272,6 +278,7 @@ def test_tuner_end_to_end_resume_and_report(tmp_path):
     text = (tmp_path / "a" / "t.toml").read_text()
     assert "# validation on 16 held-out rollouts (seed 1): 0 unsafe" in text
     assert f"0 of 4 unsafe, mean objective {z.objective:.6g}" in text
+    assert f"--safe-set {LEAN}" in text and "--params" in text
     ov = load_overrides(tmp_path / "a" / "t.toml")
     base = inputs.base_params(spec)
     np.testing.assert_allclose(np.asarray(ov["kp"]["arms"]),

@@ -95,15 +95,20 @@ def test_sweep_spec_takes_a_scenario_file_from_its_folder(tmp_path):
         load_spec(spec)
 
 
-SPEC = """
+LEAN = f"{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"
+# with a user's safe set from another file too (the torso-lean limit, inactive here: the
+# torso stays upright), added by the spec's safe_sets and swept as a grid axis
+SPEC = f"""
 [sweep]
 scenario = "side_sway.py:SIDE_SWAY"
 duration = 0.05
 settle = 1.0
 seed = 3
+safe_sets = ["{LEAN}"]
 
 [grid]
 "poles.com_side.p1" = [5.0, 20.0]
+"threshold.torso_lean" = [0.9]
 
 [perturb]
 base_linear = 0.02
@@ -112,10 +117,11 @@ base_linear = 0.02
 
 @pytest.fixture(scope="module")
 def user_runs(tmp_path_factory):
-    """``safewbc run`` of the example for 1.6 s of motion (the sway passes the limit at
-    tau = 0.47 s and peaks at tau = 1 s), and a two-rollout sweep of it on each engine: the
-    mjx sweep beside the other two (its compile is single-threaded), the mujoco sweep after
-    the run, whose controller programs it then loads from the compilation cache."""
+    """``safewbc run`` of the example with the torso-lean safe set added (``--safe-set``)
+    for 1.6 s of motion (the sway passes the limit at tau = 0.47 s and peaks at tau = 1 s),
+    and a two-rollout sweep of the same on each engine: the mjx sweep beside the other two
+    (its compile is single-threaded), the mujoco sweep after the run, whose controller
+    programs it then loads from the compilation cache."""
     tmp = tmp_path_factory.mktemp("user_scenario")
     shutil.copy(EXAMPLE, tmp / "side_sway.py")
     (tmp / "sway.toml").write_text(SPEC)
@@ -124,7 +130,8 @@ def user_runs(tmp_path_factory):
     sweep = cli + ["sweep", "sway.toml", "--batch", "2", "--quiet"]
     procs = {
         "run": subprocess.Popen(cli + ["run", "side_sway.py:SIDE_SWAY", "--duration", "1.6",
-                                       "--settle", "1.0", "--out", "run", "--cpu", "-1"],
+                                       "--settle", "1.0", "--out", "run", "--cpu", "-1",
+                                       "--safe-set", LEAN],
                                 cwd=tmp, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True),
         "mjx": subprocess.Popen(sweep + ["--out", "mjx", "--engine", "mjx"], cwd=tmp, env=env,
@@ -153,6 +160,8 @@ def test_user_scenario_runs_in_safewbc_run_and_both_sweep_engines(user_runs):
     # the barrier holds the CoM at its 4 cm limit while the reference goes on to 6 cm: h
     # stays >= -1 mm and comes within 5 mm of 0 (it binds; it does not merely slow the sway)
     assert -1e-3 <= m["barrier_min"]["com_side"] <= 5e-3, m["barrier_min"]
+    # the added safe set, h = 0.9 - pitch with the torso upright, in the run's metrics
+    assert 0.85 < m["barrier_min"]["torso_lean"] < 0.95, m["barrier_min"]
     log = np.load(tmp / "run" / "log.npz")
     assert np.max(log["yd_com"][:, 1] - log["yd_com"][0, 1]) > 0.055    # the reference's sway
     # both engines: the same rollouts, nobody falls, every QP solved, the barrier minima
@@ -166,6 +175,13 @@ def test_user_scenario_runs_in_safewbc_run_and_both_sweep_engines(user_runs):
         assert not cols["fell"].any() and (cols["qp_failed"] == 0).all()
         assert (cols["error"] == "").all()
         assert np.all((cols["barrier_min.com_side"] > 0.03) & (cols["barrier_min.com_side"] < 0.045))
+        # the user's safe set from the spec: a column of its own, the torso upright
+        np.testing.assert_array_equal(cols["threshold.torso_lean"], 0.9)
+        assert np.all((cols["barrier_min.torso_lean"] > 0.85) & (cols["barrier_min.torso_lean"] < 0.95))
     np.testing.assert_allclose(a["barrier_min.com_side"], b["barrier_min.com_side"], atol=5e-3)
-    manifest = json.loads((tmp / "mjx" / table.MANIFEST).read_text())
-    assert manifest["engine"] == "mjx"
+    # the torso's pitch (rad) on both engines: 5 mrad, the CoM's 5 mm scaled by the torso's
+    # height (~1 m) above the feet
+    np.testing.assert_allclose(a["barrier_min.torso_lean"], b["barrier_min.torso_lean"], atol=5e-3)
+    for out in ("mjx", "mujoco"):
+        manifest = json.loads((tmp / out / table.MANIFEST).read_text())
+        assert manifest["engine"] == out and manifest["safe_sets"] == [LEAN]
