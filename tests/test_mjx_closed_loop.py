@@ -165,10 +165,14 @@ def test_mixed_precision_keeps_the_walks_float64_outcomes(walk, tmp_path):
 
     mixed = run_precisions({**WALK_JOB, "precisions": ["mixed"]}, tmp_path)["mixed"]
     f64 = walk[0]
-    # tracking RMS within 10% or 0.5 mm: this short walk's CoM RMS is 2.5 mm, and the
-    # touchdowns' timing alone moves it by 0.3 mm (measured, float64 against mixed)
+    # tracking RMS within 10% or 1.2 mm (rad): over six steps the RMS of the swing foot
+    # (5.6 mm) and of the CoM (2.5 mm) follow the touchdowns' timing, which float32's
+    # rounding moves. The same mixed walk compiled by XLA:CPU with and without its fusion
+    # emitters (safewbc_jax.CPU_XLA_FLAGS) measured swing-foot RMS 5.27 and 6.41 mm and
+    # CoM RMS 2.30 and 2.20 mm, against float64's 5.59 and 2.46 mm (float64's the same
+    # either way): up to 0.82 mm from rounding alone. 1.2 mm is 1.5 times that.
     assert_mixed_keeps_float64(*({k: np.asarray(v)[:1] for k, v in m.items()}
-                                 for m in (f64, mixed)), rms_floor=5e-4)
+                                 for m in (f64, mixed)), rms_floor=1.2e-3)
     for m in (f64, mixed):
         assert not m["fell"][1] and m["qp_failed"][1] == 0 and m["barrier_min.swing_foot"][1] > 0
     assert f64["steps_taken"][1] == mixed["steps_taken"][1] >= 3
