@@ -168,38 +168,39 @@ def test_vmap_over_states(rm, states, jitted):
         np.testing.assert_allclose(batched[i], jitted["M"](rm, qs[i]), atol=1e-12)
 
 
-@pytest.mark.parametrize("kind", ["points", "orientations"])
+@pytest.mark.parametrize("kind", ["points", "relative", "orientations"])
 def test_closed_form_frame_terms_equal_forward_mode_ad(rm, states, kind):
-    """``robot.site_point_terms`` and ``position_in_terms`` (points), and
+    """``robot.site_point_terms`` (points), ``position_in_terms`` (relative), and
     ``frame_orientation_terms`` (orientations): what the frame outputs and the fist and
     swing-foot barriers use in the control step, against forward-mode AD of the same values
     along the configuration manifold (``spatial.tangent_jacobian``,
     ``second_derivative_along``), whose Jacobians and drifts are held to MuJoCo above.
     1e-9 relative: float64 evaluations of the same derivatives, in a different order; an
     orientation at |cos pitch| < 0.05 (random base orientations reach it), where Euler
-    rates are singular, is left out, and most are kept. Two tests, so that each compiles
-    half of the terms."""
+    rates are singular, is left out, and most are kept. Three tests, so that each compiles
+    a part of the terms (the points together took 18-25 s on a 2-core CPU, near the fast
+    tier's 20 s guard)."""
     frames = ("left-sole", "right-sole", "left-fist")
-    points = kind == "points"
+    points = kind != "orientations"
 
     def pose_terms(q, v):
         kin = robot.forward_kinematics(rm, q)
         motion = robot.body_motion(rm, kin, v)
-        if not points:
+        if kind == "orientations":
             return {f"r:{f}": robot.frame_orientation_terms(rm, kin, motion, f) for f in frames}
-        out = {f"p:{f}": robot.site_point_terms(rm, kin, motion, f) for f in frames}
-        out["in:left-fist"] = robot.position_in_terms(rm, kin, motion, "left-fist", "torso")
-        out["in:right-sole"] = robot.position_in_terms(rm, kin, motion, "right-sole",
-                                                       "left-fist")
-        return out
+        if kind == "points":
+            return {f"p:{f}": robot.site_point_terms(rm, kin, motion, f) for f in frames}
+        return {"in:left-fist": robot.position_in_terms(rm, kin, motion, "left-fist", "torso"),
+                "in:right-sole": robot.position_in_terms(rm, kin, motion, "right-sole",
+                                                         "left-fist")}
 
     def values(q):
-        if not points:
+        if kind == "orientations":
             return {f"r:{f}": spatial.euler_zyx(robot.frame_pose(rm, q, f)[1]) for f in frames}
-        out = {f"p:{f}": robot.frame_pose(rm, q, f)[0] for f in frames}
-        out["in:left-fist"] = robot.frame_position_in(rm, q, "left-fist", "torso")
-        out["in:right-sole"] = robot.frame_position_in(rm, q, "right-sole", "left-fist")
-        return out
+        if kind == "points":
+            return {f"p:{f}": robot.frame_pose(rm, q, f)[0] for f in frames}
+        return {"in:left-fist": robot.frame_position_in(rm, q, "left-fist", "torso"),
+                "in:right-sole": robot.frame_position_in(rm, q, "right-sole", "left-fist")}
 
     def ad_terms(q, v):
         y = values(q)
@@ -220,6 +221,8 @@ def test_closed_form_frame_terms_equal_forward_mode_ad(rm, states, kind):
                 a, b = np.asarray(a), np.asarray(b)
                 scale = max(1.0, float(np.abs(b).max()))
                 assert np.abs(a - b).max() <= 1e-9 * scale, (k, part, np.abs(a - b).max())
-    # 8 states: five points each (none left out), three orientations each (at most 8 left out)
-    assert (kept == 40 and left_out == 0) if points else (kept >= 16 and left_out <= 8), \
+    # 8 states: three points or two relative positions each (none left out), three
+    # orientations each (at most 8 left out)
+    n_points = {"points": 3, "relative": 2}.get(kind)
+    assert (kept == 8 * n_points and left_out == 0) if points else (kept >= 16 and left_out <= 8), \
         (kept, left_out)
