@@ -35,7 +35,10 @@ effect where this package is imported before that; later it changes nothing. Onl
 XLA:CPU reads these flags: a program compiled for an accelerator is the same."""
 
 
-def _add_xla_flags(flags=CPU_XLA_FLAGS) -> None:
+def add_xla_flags(flags) -> None:
+    """Append ``flags`` ("--name=value" strings) to the environment's ``XLA_FLAGS``, each
+    unless ``XLA_FLAGS`` already names it. XLA reads them when JAX starts a backend: call
+    this before the process's first JAX array or compile."""
     have = os.environ.get("XLA_FLAGS", "")
     named = {f.split("=", 1)[0].lstrip("-") for f in have.split()}
     extra = [f for f in flags if f.split("=", 1)[0].lstrip("-") not in named]
@@ -43,7 +46,7 @@ def _add_xla_flags(flags=CPU_XLA_FLAGS) -> None:
         os.environ["XLA_FLAGS"] = " ".join([have.strip(), *extra]).strip()
 
 
-_add_xla_flags()
+add_xla_flags(CPU_XLA_FLAGS)
 
 
 def enable_x64() -> None:

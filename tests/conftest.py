@@ -5,7 +5,7 @@ from pathlib import Path
 
 # before JAX starts its CPU backend: the XLA:CPU flags the package sets on import
 # (safewbc_jax.CPU_XLA_FLAGS), as in the command and every process the tests start
-import safewbc_jax  # noqa: F401
+import safewbc_jax
 
 import jax
 import numpy as np
@@ -44,6 +44,37 @@ try:
 except ValueError:
     raise pytest.UsageError("SAFEWBC_FAST_LIMIT_S must be a number of seconds, got "
                             f"{os.environ['SAFEWBC_FAST_LIMIT_S']!r}") from None
+
+# The fast tier (`-m "not slow"`, exactly) compiles with LLVM's optimisation off: its tests
+# are compile-bound (measured on a 2-core CPU: XLA backend compiles 179 of its 265 CPU s),
+# their programs run for milliseconds, and the level changes how fast the machine code is,
+# not what it computes (rounding of the order of 1e-16 where instructions are reordered).
+# The full suite, which CI and the README run, compiles every test, these included, at
+# XLA's default, as a user's program is. benchmarks/README.md, "The test suite", has the
+# figures. A level named in XLA_FLAGS by the user is kept.
+FAST_TIER_XLA_FLAGS = ("--xla_backend_optimization_level=0",)
+
+
+def _fast_tier(config) -> bool:
+    return " ".join((config.getoption("markexpr") or "").split()) == "not slow"
+
+
+def pytest_configure(config):
+    if not _fast_tier(config):
+        return
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        raise pytest.UsageError("the fast tier's XLA flags must be set before JAX starts "
+                                "its CPU backend, and something started it earlier")
+    safewbc_jax.add_xla_flags(FAST_TIER_XLA_FLAGS)
+
+
+def pytest_report_header(config):
+    if _fast_tier(config):
+        return f"fast tier: XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}"
+
+
 _SETUP_S = pytest.StashKey[float]()
 _CPU0 = pytest.StashKey[float]()
 _WALL0 = pytest.StashKey[float]()

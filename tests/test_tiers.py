@@ -99,3 +99,34 @@ def test_shares_3(compiled):
     # output names which test the guard held, and with how much time
     assert res.parseoutcomes().get("passed") == 4 and res.parseoutcomes().get("failed") == 1, out
     assert "test_shared.py::test_computes took" in out and "CPU time" in out, out
+
+
+def test_the_fast_tier_compiles_with_llvm_optimisation_off(pytester, monkeypatch):
+    """``-m "not slow"`` (and only that selection) adds FAST_TIER_XLA_FLAGS to XLA_FLAGS
+    before JAX starts, and says so in the header; a level the user names is kept."""
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    pytester.makeconftest(CONFTEST.read_text())
+    pytester.makeini("[pytest]\nmarkers =\n    slow: slow\n")
+    pytester.makepyfile(test_flags="""
+import os
+import jax.numpy as jnp
+
+def test_flags():
+    jnp.zeros(1)                       # the backend starts with the flags of this moment
+    print("FLAGS=" + os.environ.get("XLA_FLAGS", ""))
+""")
+
+    def flags(*args):
+        res = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-s", *args)
+        res.assert_outcomes(passed=1)
+        line = [x for x in res.stdout.lines if "FLAGS=" in x][0]
+        return line.split("FLAGS=", 1)[1].split(), res.stdout.str()
+
+    fast, out = flags("-m", "not slow")
+    assert "--xla_backend_optimization_level=0" in fast, fast
+    assert "fast tier: XLA_FLAGS=" in out
+    full, out = flags()
+    assert not any("optimization_level" in f for f in full) and "fast tier" not in out
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")
+    kept, _ = flags("-m", "not   slow")
+    assert [f for f in kept if "optimization_level" in f] == ["--xla_backend_optimization_level=2"]
