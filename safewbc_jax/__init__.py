@@ -29,10 +29,10 @@ emitters instead of XLA:CPU's newer MLIR fusion emitters, the closed loop of the
 path (arms, batch 2) compiled in 38 CPU s instead of 56 and the deployed walking
 controller started in 20 s instead of 32; the deployed step ran within 2% of its speed, the
 batched loop at 0.82-1.04 of it in noisy runs (benchmarks/README.md, "XLA:CPU's fusion
-emitters"). XLA reads ``XLA_FLAGS``
-when JAX starts its CPU backend (the first JAX array or compile), so the setting takes
-effect where this package is imported before that; later it changes nothing. Only
-XLA:CPU reads these flags: a program compiled for an accelerator is the same."""
+emitters"). XLA reads ``XLA_FLAGS`` when JAX starts its CPU backend (the first JAX array
+or compile), so the setting takes effect where this package is imported before that;
+later it changes nothing. Only XLA:CPU reads these flags: a program compiled for an
+accelerator is the same."""
 
 
 def add_xla_flags(flags) -> None:
