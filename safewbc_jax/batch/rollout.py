@@ -400,23 +400,41 @@ def _step(pl: Plant, run: Run, params, push: Push, carry: Carry, k):
     return new, record
 
 
-def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, perturb_v,
-             n_steps, settle, speed, t_half):
-    """One rollout from the stand keyframe: (final Carry, decimated records or None).
-
-    Without records the time loop is a ``fori_loop`` over the run-time ``n_steps``; with
-    records (every ``decimate``-th step, ``n_records`` of them: static) a scan."""
+def _start(pl: Plant, perturb_v) -> Carry:
+    """One rollout's Carry at the stand keyframe, its velocity perturbed by ``perturb_v``."""
     dtype = jnp.float64               # the controller's; the physics' is pl.data0's
-    run = Run(control_step.RunValues(jnp.asarray(settle, dtype), jnp.asarray(speed, dtype),
-                                     jnp.asarray(t_half, dtype)), n_steps)
     qvel0 = pl.data0.qvel
     dx = pl.data0.replace(qvel=(qvel0 + perturb_v).astype(qvel0.dtype))
     meas, legs = _sense(pl, dx, 0.0)
-    carry = Carry(dx, *control_step.init_state(pl.ctx, meas.q, meas.v, jnp, dtype),
-                  metrics.plant_init(jnp, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
-                  meas, legs)
-    carry = _per_rollout(carry, perturb_v)
-    step = functools.partial(_step, pl, run, params, push)
+    return Carry(dx, *control_step.init_state(pl.ctx, meas.q, meas.v, jnp, dtype),
+                 metrics.plant_init(jnp, dtype), jnp.asarray(True), jnp.asarray(-1, jnp.int32),
+                 meas, legs)
+
+
+def _rollouts(pl: Plant, decimate: int, n_records: int, params, push: Push, perturb_v,
+              n_steps, settle, speed, t_half):
+    """The rollouts of a batch (``params``, ``push`` and ``perturb_v`` with a leading batch
+    axis) from the stand keyframe: (final Carry, decimated records or None), each leaf
+    with the batch axis first.
+
+    The time loop runs over the batch's control step: ``vmap`` of ``_step`` inside the
+    loop, not of the loop. The program is the same (every carry leaf is per-rollout after
+    one step, the loop's bounds are shared), but ``vmap`` of a loop batches its body
+    through the loop's batching rule, which first finds which carry leaves are batched
+    and then batches the body again: tracing the step inside a batched loop costs about
+    twice tracing the batched step (benchmarks/README.md, "Tracing the closed loop").
+
+    Without records the time loop is a ``fori_loop`` over the run-time ``n_steps``; with
+    records (every ``decimate``-th step, ``n_records`` of them: static) a scan."""
+    dtype = jnp.float64
+    run = Run(control_step.RunValues(jnp.asarray(settle, dtype), jnp.asarray(speed, dtype),
+                                     jnp.asarray(t_half, dtype)), n_steps)
+    carry = jax.vmap(functools.partial(_start, pl))(perturb_v)
+    batched = jax.vmap(functools.partial(_step, pl, run), in_axes=(0, 0, 0, None))
+
+    def step(c, k):
+        return batched(params, push, c, k)
+
     if not decimate:
         return jax.lax.fori_loop(0, n_steps, lambda k, c: step(c, k)[0], carry), None
 
@@ -427,27 +445,15 @@ def _rollout(pl: Plant, decimate: int, n_records: int, params, push: Push, pertu
         c, recs = jax.lax.scan(step, c, k0 + jnp.arange(decimate))
         return c, jax.tree_util.tree_map(lambda r: r[0], recs)
 
-    return jax.lax.scan(outer, carry, decimate * jnp.arange(n_records))
-
-
-def _per_rollout(tree, batched):
-    """``tree`` with each leaf made a function of ``batched`` (an argument that ``vmap``
-    maps), the values unchanged. Every leaf of the time loop's carry depends on the
-    rollout's inputs after one step; starting it batched spares ``vmap``'s while-loop rule
-    the rounds in which it finds that out, each of which batches the whole step (nested
-    solver loops included) again: the arms closed loop traces in 5.0 s instead of 7.5 s
-    (benchmarks/README.md, "Tracing the closed loop"). The batched leaves are those the
-    rule chooses anyway (and the empty ones), so the compiled program computes the same."""
-    same = jnp.all(batched == batched) | True
-    return jax.tree_util.tree_map(lambda a: jax.lax.select_n(same, a, a), tree)
+    final, recs = jax.lax.scan(outer, carry, decimate * jnp.arange(n_records))
+    return final, jax.tree_util.tree_map(lambda r: jnp.swapaxes(r, 0, 1), recs)
 
 
 @functools.lru_cache(maxsize=16)
 def _compiled(pl: Plant, decimate: int, n_records: int, chunk: int | None):
-    """jit of the vmapped rollout over (params, push, perturb_v), the batch run ``chunk``
-    rollouts at a time (``chunking.chunked``; None: one vmap)."""
-    one = jax.vmap(functools.partial(_rollout, pl, decimate, n_records),
-                   in_axes=(0, 0, 0, None, None, None, None))
+    """jit of the batch's rollouts over (params, push, perturb_v), the batch run ``chunk``
+    rollouts at a time (``chunking.chunked``; None: the whole batch at once)."""
+    one = functools.partial(_rollouts, pl, decimate, n_records)
     run = chunked(lambda batched, *shared: one(*batched, *shared), chunk)
     return jax.jit(lambda params, push, perturb_v, *shared:
                    run((params, push, perturb_v), *shared))
