@@ -294,7 +294,9 @@ def test_mujoco_engine_killed_resumed_and_any_worker_count_give_one_table(mujoco
                                       td.column(name).to_numpy(zero_copy_only=False),
                                       err_msg=name)
     for out in (s["c"], s["d"]):
-        assert __import__("json").loads((out / table_mod.MANIFEST).read_text())["engine"] == "mujoco"
+        manifest = __import__("json").loads((out / table_mod.MANIFEST).read_text())
+        # the workers ran BATCH lanes side by side, not 16: no lane a chunk cannot fill
+        assert manifest["engine"] == "mujoco" and manifest["lockstep"] == BATCH
     # resuming the mujoco table with the other engine is refused, naming the engine
     assert s["other"].returncode == 2
     assert "engine = 'mujoco'" in s["other"].stderr and "--engine" in s["other"].stderr

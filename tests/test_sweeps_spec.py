@@ -420,3 +420,14 @@ def test_auto_batch_on_the_cpu_and_on_resume(tmp_path):
     assert _batch_arg("auto") == "auto" and _batch_arg("12") == 12
     with pytest.raises(Exception, match="expected an integer >= 1"):
         _batch_arg("0")
+
+
+def test_lockstep_width_is_16_or_a_smaller_batch():
+    """The mujoco engine's lanes side by side (sweeps.pool): 16, or the batch where it is
+    smaller, a chunk's groups never wider than the chunk; unresolved ("auto", None): 16."""
+    from safewbc_jax.sweeps.pool import LOCKSTEP, lockstep_width
+
+    assert LOCKSTEP == 16
+    assert [lockstep_width(b) for b in (1, 2, 15, 16, 17, 256)] == [1, 2, 15, 16, 16, 16]
+    assert lockstep_width(None) == lockstep_width("auto") == 16
+    assert lockstep_width(np.int64(3)) == 3

@@ -132,3 +132,7 @@ def test_mujoco_engine_tunes_the_same_spec(tunes):
     assert b["used"] == 8 and len(b["generations"]) == 2
     assert b["validation"]["n"] == 2 and b["validation"]["unsafe"] == 0
     assert b["validation"]["seed"] == 8
+    # the pool, kept across the generations, ran --batch 2 lanes side by side in each
+    work = t["paths"][1].parent / "tuned_tune"
+    widths = {json.loads(m.read_text())["lockstep"] for m in work.glob("*/sweep.json")}
+    assert widths == {2}, widths

@@ -206,7 +206,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 "objective_weights": dict(spec.tune.get("weights", {})),
                 "safe_sets": list(spec.safe_sets), "engine": engine}
     if engine == "mujoco":      # rollouts side by side per worker: rounding depends on it
-        manifest["lockstep"] = pool_mod.LOCKSTEP
+        width = getattr(executor, "lockstep", None) or pool_mod.lockstep_width(batch)
+        manifest["lockstep"] = width
     base, std, settings = preflight(spec, seed, check_poles=check_poles)
     table_mod.open_manifest(out, manifest, spec_text)
     mine = {k for k in range(len(chunks)) if k % hosts == host_index}
@@ -227,7 +228,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     if max_chunks is not None:
         todo = todo[:max_chunks]
     own = executor is None and engine == "mujoco"
-    execute = (executor or (pool_mod.PoolExecutor(spec, workers) if own else real_executor()))
+    execute = (executor or (pool_mod.PoolExecutor(spec, workers, lockstep=width) if own
+                            else real_executor()))
     pads = getattr(execute, "pads", True)
     t0 = t_chunk = time.perf_counter()
     ran = 0

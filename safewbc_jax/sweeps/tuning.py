@@ -417,7 +417,8 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
     own_pool = None
     if executor is None and pool_mod.resolve_engine(engine) == "mujoco":
         engine = "mujoco"       # one pool for every generation: its workers compile once
-        executor = own_pool = pool_mod.PoolExecutor(spec, workers)
+        executor = own_pool = pool_mod.PoolExecutor(
+            spec, workers, lockstep=pool_mod.lockstep_width(batch))
     run = _Run(spec, cfg, params, base, etas, dist_axes, dist_rows, n_draws, work, seed,
                dict(batch=batch, executor=executor, progress=progress, quiet=quiet,
                     engine=engine, workers=workers), title, say, _units(spec))
