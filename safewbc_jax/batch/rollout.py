@@ -418,11 +418,13 @@ def _rollouts(pl: Plant, decimate: int, n_records: int, params, push: Push, pert
     with the batch axis first.
 
     The time loop runs over the batch's control step: ``vmap`` of ``_step`` inside the
-    loop, not of the loop. The program is the same (every carry leaf is per-rollout after
-    one step, the loop's bounds are shared), but ``vmap`` of a loop batches its body
-    through the loop's batching rule, which first finds which carry leaves are batched
-    and then batches the body again: tracing the step inside a batched loop costs about
-    twice tracing the batched step (benchmarks/README.md, "Tracing the closed loop").
+    loop, not of the loop. The results are the same, bitwise (every carry leaf is
+    per-rollout after one step; the loop's bounds are shared), but ``vmap`` of a loop
+    batches its body through the loop's batching rule, which first finds which carry
+    leaves are per-rollout, a batching of the body a round, and then batches it again;
+    the ``vmap``ped step is batched once, as it is traced. Measured: the trace about 20%
+    shorter, the first call (trace, compile and a short run) 10-35% less CPU
+    (benchmarks/README.md, "Tracing the closed loop").
 
     Without records the time loop is a ``fori_loop`` over the run-time ``n_steps``; with
     records (every ``decimate``-th step, ``n_records`` of them: static) a scan."""
