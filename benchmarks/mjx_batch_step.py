@@ -32,7 +32,7 @@ def main(argv=None) -> dict:
     import jax.numpy as jnp
     import mujoco
 
-    from safewbc_jax import paths
+    from safewbc_jax import paths, precision
     from safewbc_jax.mjx_import import import_mjx
 
     mjx = import_mjx()
@@ -46,15 +46,14 @@ def main(argv=None) -> dict:
     noise = 1e-3 * jax.random.normal(key, (args.batch, m.nv))
     batch = jax.vmap(lambda dq: dx.replace(qvel=dx.qvel + dq))(noise)
 
-    step = jax.vmap(mjx.step, in_axes=(None, 0))
+    # precision.physics gives each leaf back in the dtype it came in (under x64 mjx.step
+    # returns int64 contact indices where put_data made int32 ones), so the data can be the
+    # scan's carry and the program holds mjx.step once
+    step = jax.vmap(precision.physics(mjx.step, args.dtype), in_axes=(None, 0))
 
     def rollout(data):
-        # One step outside the scan: under x64 MJX returns int64 contact indices where
-        # put_data made int32 ones, and a scan carry must keep its types.
-        data = step(mx, data)
-        data, _ = jax.lax.scan(lambda dd, _: (step(mx, dd), None), data, None,
-                               length=args.steps - 1)
-        return data
+        return jax.lax.scan(lambda dd, _: (step(mx, dd), None), data, None,
+                            length=args.steps)[0]
 
     fn = jax.jit(rollout)
     t0 = time.perf_counter()
