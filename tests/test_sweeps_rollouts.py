@@ -236,7 +236,8 @@ def _alive(pid: int) -> bool:
 @pytest.fixture(scope="module")
 def mujoco_sweeps(tmp_path_factory):
     """The spec with ``--engine mujoco``: (C) two workers, the parent killed with SIGKILL
-    once the first chunk is on disk, then rerun to completion; (D) one worker, in one go."""
+    once the first chunk is on disk, then rerun to completion on one worker; (D) one
+    worker, in one go."""
     tmp = tmp_path_factory.mktemp("mujoco_sweeps")
     spec = tmp / "tiny.toml"
     spec.write_text(SPEC)
@@ -260,7 +261,9 @@ def mujoco_sweeps(tmp_path_factory):
         time.sleep(0.1)
     left = [p for p in workers if _alive(p)]
     killed = {"finished": table_mod.finished_chunks(c), "workers": workers, "left": left}
-    resume = subprocess.run(cmd(c, 2), env=sweep_env(1), capture_output=True, text=True,
+    # the rerun on one worker: its one chunk is one lockstep group, which one worker runs
+    # (a second would start, compile and idle)
+    resume = subprocess.run(cmd(c, 1), env=sweep_env(1), capture_output=True, text=True,
                             cwd=tmp, timeout=900)
     one = subprocess.run(cmd(d, 1), env=sweep_env(1), capture_output=True, text=True, cwd=tmp,
                          timeout=900)
@@ -281,6 +284,7 @@ def test_mujoco_engine_killed_resumed_and_any_worker_count_give_one_table(mujoco
     assert len(k["workers"]) >= 2 and not k["left"], k
     assert s["resume"].returncode == 0, s["resume"].stderr[-3000:]
     assert "1/2 chunks already done, 1 to run" in s["resume"].stderr
+    assert "on 1 MuJoCo worker" in s["resume"].stderr
     assert s["one"].returncode == 0, s["one"].stderr[-3000:]
     assert "on 1 MuJoCo worker" in s["one"].stderr
     tc = table_mod.read_table(s["c"]).drop_columns(["chunk"])
