@@ -7,8 +7,8 @@ Each worker is pinned to one CPU, compiles the scenario's controller once
 (``Controller.start`` and ``Lockstep.warm_up``; JAX's persistent compilation cache, when
 the parent has one, is shared) and then takes groups of up to ``lockstep`` rollouts (a
 chunk is split into groups by its size alone; ``lockstep_width``: 16, or the sweep's batch
-where that is smaller, so that no lane is computed that no rollout can fill): per rollout, reset its simulator to the
-stand keyframe plus its velocity perturbation, ``Controller.restart`` with its params
+where that is smaller, so that no lane is computed that no rollout can fill): per
+rollout, reset its simulator to the stand keyframe plus its velocity perturbation, ``Controller.restart`` with its params
 (Theorem 1 at its own start), roll the group out, and send back each rollout's metric
 columns (``metrics.table_columns``: the columns the ``mjx`` engine writes). A rollout's
 result depends only on its inputs and its group's width, not on the worker that ran it
@@ -40,9 +40,9 @@ START_TIMEOUT_S = 1800.0      # a worker's import, compile and warm-up
 def lockstep_width(batch) -> int:
     """The lockstep width of a pool whose chunks hold at most ``batch`` rollouts: ``LOCKSTEP``,
     or ``batch`` where that is smaller (None, or "auto" before it is resolved:
-    ``LOCKSTEP``). Every lane of the vmapped step is computed, filled or not: two arms
-    rollouts of 1,050 steps took 4.3 CPU s at width 2 and 16.0 s at width 16
-    (benchmarks/README.md, "The test suite")."""
+    ``LOCKSTEP``). Every lane of the vmapped step is computed, filled or not: a one-worker
+    sweep of four arms rollouts at batch 2 (two groups, 1,050 steps each, warm cache)
+    took 13.9 s at width 2 and 19.5 s at width 16 (2-core AMD EPYC, CHANGELOG)."""
     if isinstance(batch, (int, np.integer)) and batch >= 1:
         return min(LOCKSTEP, int(batch))
     return LOCKSTEP
