@@ -8,9 +8,9 @@ Each worker is pinned to one CPU, compiles the scenario's controller once
 the parent has one, is shared) and then takes groups of up to ``lockstep`` rollouts (a
 chunk is split into groups by its size alone; ``lockstep_width``: 16, or the sweep's batch
 where that is smaller, so that no lane is computed that no rollout can fill): per
-rollout, reset its simulator to the stand keyframe plus its velocity perturbation, ``Controller.restart`` with its params
-(Theorem 1 at its own start), roll the group out, and send back each rollout's metric
-columns (``metrics.table_columns``: the columns the ``mjx`` engine writes). A rollout's
+rollout, reset its simulator to the stand keyframe plus its velocity perturbation,
+``Controller.restart`` with its params (Theorem 1 at its own start), roll the group out,
+and send back each rollout's metric columns (``metrics.table_columns``: the columns the ``mjx`` engine writes). A rollout's
 result depends only on its inputs and its group's width, not on the worker that ran it
 nor on the order.
 
