@@ -10,9 +10,9 @@ chunk is split into groups by its size alone; ``lockstep_width``: 16, or the swe
 where that is smaller, so that no lane is computed that no rollout can fill): per
 rollout, reset its simulator to the stand keyframe plus its velocity perturbation,
 ``Controller.restart`` with its params (Theorem 1 at its own start), roll the group out,
-and send back each rollout's metric columns (``metrics.table_columns``: the columns the ``mjx`` engine writes). A rollout's
-result depends only on its inputs and its group's width, not on the worker that ran it
-nor on the order.
+and send back each rollout's metric columns (``metrics.table_columns``: the columns the
+``mjx`` engine writes). A rollout's result depends only on its inputs and its group's
+width, not on the worker that ran it nor on the order.
 
 Failures never stall a chunk: a rollout that raises comes back with the reason; a worker
 that dies or sends nothing for ``rollout_timeout`` seconds per rollout of its group is
