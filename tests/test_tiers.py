@@ -113,7 +113,6 @@ def test_the_fast_tier_compiles_with_llvm_optimisation_off(pytester, monkeypatch
     pytester.makeini("[pytest]\nmarkers =\n    slow: slow\n")
     pytester.makepyfile(test_flags="""
 import os
-import re
 import jax.numpy as jnp
 
 def test_flags():
