@@ -82,9 +82,8 @@ def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
     (``robot.body_motion``) all their drift terms: XLA on the CPU pays per operation, and
     a forward-mode tangent of the kinematics and Jacobians would triple their count."""
     kin = robot.forward_kinematics(model, q)
-    bodies = robot.com_jacobians(model, kin)
     motion = robot.body_motion(model, kin, v)
-    dyn = robot.dynamics_from_motion(model, bodies, motion)
+    dyn = robot.dynamics(model, kin, motion)
     step = outputs_mod.StepTerms(dyn, kin, motion, domain)
     outs = {o.name: o.evaluate(model, q, v, step) for o in scenario.outputs}
     return Terms(dyn.M, dyn.h, constraint_jacobian(model, q, kin),

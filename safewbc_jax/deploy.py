@@ -416,16 +416,16 @@ class Controller:
                                           None if res is None else row(res, 0), t_qp, t_solve)
         return r
 
-    def kernels(self) -> dict:
-        """The kernels XLA runs for one call of the jitted step (``prepare`` with the
-        elimination), by kind, with "total" (``kernels.count``); after ``start``."""
+    def kernels(self, cost: bool = False) -> dict:
+        """Per call of the jitted step (``prepare`` with the elimination), after ``start``:
+        its kernels by kind (``kernels.count``), or XLA's ``cost`` analysis (``kernels.cost``)."""
         from safewbc_jax import kernels
-
         if self._prepare is None:
             raise RuntimeError("Controller.kernels before start(q, v)")
         q, v = self._start_qv
         meas = self.flat_measurement(Measurement(q, v, 0.0, np.zeros(2)))
-        return kernels.count(self._prepare, self._fixed, self._state, meas)
+        return (kernels.cost if cost else kernels.count)(self._prepare, self._fixed,
+                                                         self._state, meas)
 
     def prepare_flat(self, state: control_step.ControllerState, meas: Measurement):
         """The deployed step's jitted ``prepare`` (with the elimination) at a given

@@ -1,4 +1,5 @@
-"""How many kernels XLA:CPU runs for one call of a jitted function.
+"""How many kernels XLA:CPU runs for one call of a jitted function, and what XLA's cost
+analysis says it computes.
 
 On the CPU, XLA's thunk runtime pays a fixed cost for every operation of the compiled
 program's entry computation that does work (a fusion, a dot, a custom call such as a
@@ -42,3 +43,21 @@ def count(fn, *args) -> dict:
 
     jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
     return count_text(jitted.lower(*args).compile().as_text())
+
+
+def cost(fn, *args) -> dict:
+    """What one call of ``jax.jit(fn)`` at ``args`` costs by XLA's own analysis of the
+    compiled program: {"flops", "bytes" (bytes accessed by its operations), "kernels"
+    (``count_text``'s total)}. Deterministic for a jaxlib version and a backend. XLA
+    counts a custom call (a LAPACK factorisation or triangular solve on the CPU) as no
+    flops: its work is not in "flops"."""
+    import jax
+
+    jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
+    compiled = jitted.lower(*args).compile()
+    analysis = compiled.cost_analysis()
+    if isinstance(analysis, (list, tuple)):     # older jaxlibs: one dict per program
+        analysis = analysis[0]
+    return {"flops": float(analysis.get("flops", 0.0)),
+            "bytes": float(analysis.get("bytes accessed", 0.0)),
+            "kernels": count_text(compiled.as_text())["total"]}

@@ -12,14 +12,18 @@ Everything here takes a :class:`RobotModel` (a pytree of arrays with its tree st
 static metadata) and plain arrays, so it jit-compiles and vmaps; the model's arrays can be
 batched too (for example to sweep a mass).
 
-M and h are written with the body Jacobians: for each body b with mass m_b, centre of
-mass c_b and world inertia I_b,
+M and h follow the tree's structure (``dynamics``): each dof's subtree is one composite
+rigid body about the world origin (the subtree sums are one product with a static 0/1
+matrix, not a pass level by level), M[i, j] = S_i . I^c_j S_j where dof i moves dof j's
+body and zero elsewhere (the composite rigid-body algorithm), and h_k = S_k . F^c_k with
+F^c_k the subtree's Newton-Euler forces at the bias accelerations (the recursive
+Newton-Euler algorithm's backward pass). The body velocities and bias accelerations come
+in closed form from the per-dof axes (``body_motion``); the drift terms J_dot v of frames
+follow from them.
 
-    M = sum_b m_b Jc_b^T Jc_b + Jw_b^T I_b Jw_b + diag(armature),
-    h = sum_b Jc_b^T m_b (Jc_dot_b v - g) + Jw_b^T (I_b Jw_dot_b v + w_b x I_b w_b),
-
-the virtual-work sum of each body's Newton-Euler equations. The drift terms J_dot v are
-derivatives of J(q) v along the curve q(t) = integrate(q, v t) (forward-mode AD).
+Size: kinematics, the composite-body dynamics and the frame terms share the tree's
+private helpers (per-dof axes, ancestry, paths); the layered ``model/`` folder of the
+layout work is where they split.
 """
 
 from __future__ import annotations
@@ -417,20 +421,6 @@ def _com_jacobians(model: RobotModel, q):
     return jp, jr, irot
 
 
-def mass_matrix(model: RobotModel, q):
-    """M(q), nv x nv, armature (reflected rotor inertia) on the diagonal."""
-    jp, jr, irot = _com_jacobians(model, q)
-    iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
-    m = jnp.einsum("b,bin,bim->nm", model.body_mass, jp, jp)
-    m = m + jnp.einsum("bin,bij,bjm->nm", jr, iworld, jr)
-    return m + jnp.diag(model.armature)
-
-
-def bias_forces(model: RobotModel, q, v):
-    """h(q, v) = C(q, v) v + G(q): Coriolis, centrifugal and gravity forces (nv)."""
-    return dynamics_and_com(model, q, v).h
-
-
 def com_jacobians(model: RobotModel, kin):
     """Per body, from forward kinematics ``kin`` = (xpos, xrot): linear and angular
     Jacobians of its centre of mass [nb, 3, nv], principal-axis rotation, CoM position."""
@@ -450,36 +440,131 @@ class Dynamics(NamedTuple):
     Jdot_v_com: jax.Array
 
 
-def dynamics_from_motion(model: RobotModel, bodies, motion: BodyMotion) -> Dynamics:
-    """M, h and the CoM terms from the body Jacobians ``bodies`` = com_jacobians(...) and
-    the closed-form body motion ``motion`` = body_motion(...) of the same state."""
-    jp, jr, irot, com = bodies
+def _subtrees(model: RobotModel) -> np.ndarray:
+    """Static [nb, nb]: 1 where body d is in the subtree of body b (b itself included)."""
     nb = len(model.body_names)
-    every = np.arange(nb)
-    acc = motion.point_bias(every, com)
-    return _dynamics(model, jp, jr, irot, com, acc, motion.alpha, motion.omega)
+    out = np.zeros((nb, nb))
+    for d in range(nb):
+        c = d
+        while c >= 0:
+            out[c, d] = 1.0
+            c = model.body_parent[c]
+    return out
 
 
-def _dynamics(model, jp, jr, irot, com, acc, alpha, omega):
+def _dof_ancestry(model: RobotModel) -> np.ndarray:
+    """Static [nv, nv] bool: [i, j] where dof i moves the body of dof j (i is dof j's
+    ancestor in the tree, or a dof of the same joint): M[i, j] is not zero by structure
+    only there and at [j, i]."""
+    nb = len(model.body_names)
+    own = _dof_bodies(model)
+    moves = np.zeros((nb, model.nv), bool)       # [b, k]: dof k moves body b
+    for b in range(nb):
+        c = b
+        while c >= 0:
+            moves[b, own == c] = True
+            c = model.body_parent[c]
+    return moves[own].T
+
+
+def _spatial_axes(w, o, t):
+    """Per dof, the world-frame motion axis about the world origin: angular part w_k and
+    the velocity of the point at the origin, t_k - w_k x o_k (``_dof_motion``)."""
+    return w, t - jnp.cross(w, o)
+
+
+_SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def _composite(model: RobotModel, kin, motion: BodyMotion | None):
+    """Composite rigid bodies about the world origin, for the bodies that own a dof.
+
+    Each body's spatial inertia about the origin is (m, m c, I_o) with I_o = I_c +
+    m (|c|^2 1 - c c^T); its Newton-Euler force (when ``motion`` is given) is f = m (a -
+    g) on its CoM acceleration bias a (q_ddot = 0) and n = c x f + I_c alpha + omega x
+    I_c omega about the origin. A composite is the sum of these over the body's subtree:
+    one product with the static subtree matrix, no pass level by level. Returns (per
+    dof: m, m c [3], I_o [6: xx yy zz xy xz yz], and where ``motion`` is given n [3],
+    f [3]; the bodies' CoMs [nb, 3]; their CoM bias accelerations [nb, 3] or None)."""
+    xpos, xrot = kin
+    com, irot = body_com(model, xpos, xrot)
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
-    mass = jnp.einsum("b,bin,bim->nm", model.body_mass, jp, jp)
-    mass = mass + jnp.einsum("bin,bij,bjm->nm", jr, iworld, jr) + jnp.diag(model.armature)
-    force = model.body_mass[:, None] * (acc - model.gravity[None])
-    iw = jnp.einsum("bij,bj->bi", iworld, omega)
-    torque = jnp.einsum("bij,bj->bi", iworld, alpha) + jnp.cross(omega, iw)
-    h = jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
+    m = model.body_mass
+    mc = m[:, None] * com
+    io = iworld + (m * jnp.sum(com * com, axis=1))[:, None, None] * jnp.eye(3, dtype=com.dtype) \
+        - mc[:, :, None] * com[:, None, :]
+    cols = [m[:, None], mc, jnp.stack([io[:, i, j] for i, j in _SYM], axis=1)]
+    acc = None
+    if motion is not None:
+        every = np.arange(len(model.body_names))
+        acc = motion.point_bias(every, com)
+        force = m[:, None] * (acc - model.gravity[None])
+        iw = jnp.einsum("bij,bj->bi", iworld, motion.omega)
+        torque = (jnp.einsum("bij,bj->bi", iworld, motion.alpha)
+                  + jnp.cross(motion.omega, iw) + jnp.cross(com, force))
+        cols += [torque, force]
+    own = _dof_bodies(model)
+    owners, row = np.unique(own, return_inverse=True)
+    comp = jnp.asarray(_subtrees(model)[owners], com.dtype) @ jnp.concatenate(cols, axis=1)
+    return comp[row], com, acc
+
+
+def _joint_space(model: RobotModel, kin, comp):
+    """M (armature on the diagonal) and the CoM Jacobian from the per-dof composites:
+    with S_k = [w_k; v0_k] (``_spatial_axes``) and F_k = I^c_k S_k = [I_o w + (m c) x v0;
+    m v0 + w x (m c)], M[i, j] = S_i . F_j where dof i moves dof j's body (the composite
+    rigid-body algorithm's entries, Featherstone 2008, eq. 6.7 form), zero elsewhere by
+    structure; column k of m_tot J_CoM is F_k's linear part. Also returns the axes."""
+    xpos, xrot = kin
+    w, v0 = _spatial_axes(*_dof_motion(model, xpos, xrot))
+    m, h = comp[:, 0:1], comp[:, 1:4]
+    ixx, iyy, izz, ixy, ixz, iyz = (comp[:, 4 + i] for i in range(6))
+    iw = jnp.stack([ixx * w[:, 0] + ixy * w[:, 1] + ixz * w[:, 2],
+                    ixy * w[:, 0] + iyy * w[:, 1] + iyz * w[:, 2],
+                    ixz * w[:, 0] + iyz * w[:, 1] + izz * w[:, 2]], axis=1)
+    f_ang = iw + jnp.cross(h, v0)
+    f_lin = m * v0 + jnp.cross(w, h)
+    p = w @ f_ang.T + v0 @ f_lin.T                      # [i, j] = S_i . F_j
+    anc = _dof_ancestry(model)
+    upper = np.triu(np.ones((model.nv, model.nv), bool))
+    sel = jnp.where(anc, p, jnp.where(anc.T, p.T, 0.0))
+    mass = jnp.where(upper, sel, sel.T) + jnp.diag(model.armature)
+    return mass, f_lin, (w, v0)
+
+
+def mass_matrix(model: RobotModel, q):
+    """M(q), nv x nv, armature (reflected rotor inertia) on the diagonal, by composite
+    rigid bodies (``_joint_space``)."""
+    kin = forward_kinematics(model, q)
+    comp, _, _ = _composite(model, kin, None)
+    return _joint_space(model, kin, comp)[0]
+
+
+def dynamics(model: RobotModel, kin, motion: BodyMotion) -> Dynamics:
+    """M, h and the CoM terms at one state, from its forward kinematics ``kin`` and body
+    motion (``body_motion``), by composite rigid bodies about the world origin
+    (``_composite``): M's entries are S_i . I^c S_j (``_joint_space``), and h (the paper's
+    C(q, v) v + G(q) of eq. 1) is h_k = S_k . F^c_k, the spatial Newton-Euler forces of the
+    subtree that dof k carries (the recursive Newton-Euler algorithm's backward pass,
+    as one product). Equal to the virtual-work sum over the bodies' CoM Jacobians,
+    sum_b J_b^T (m_b (a_b - g), I_b alpha_b + omega_b x I_b omega_b)."""
+    comp, com, acc = _composite(model, kin, motion)
+    mass, f_lin, (w, v0) = _joint_space(model, kin, comp)
+    h = jnp.sum(w * comp[:, 10:13] + v0 * comp[:, 13:16], axis=1)
     mtot = jnp.sum(model.body_mass)
-    return Dynamics(M=mass, h=h, com=model.body_mass @ com / mtot,
-                    J_com=jnp.einsum("b,bin->in", model.body_mass, jp) / mtot,
+    return Dynamics(M=mass, h=h, com=model.body_mass @ com / mtot, J_com=f_lin.T / mtot,
                     Jdot_v_com=model.body_mass @ acc / mtot)
 
 
+def bias_forces(model: RobotModel, q, v):
+    """h(q, v) = C(q, v) v + G(q): Coriolis, centrifugal and gravity forces (nv)."""
+    return dynamics_and_com(model, q, v).h
+
+
 def dynamics_and_com(model: RobotModel, q, v):
-    """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v from one pass over the body Jacobians
-    and the closed-form body motion (equal to ``mass_matrix``, ``bias_forces``,
-    ``com_position``, ``com_jacobian``, ``com_drift``)."""
+    """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v (``dynamics``) from q and v."""
     kin = forward_kinematics(model, q)
-    return dynamics_from_motion(model, com_jacobians(model, kin), body_motion(model, kin, v))
+    return dynamics(model, kin, body_motion(model, kin, v))
 
 
 # --------------------------------------------------------------------------------------

@@ -12,7 +12,25 @@ from safewbc_jax.chains import chain_jacobian
 from safewbc_jax.contacts import contact_jacobian, stacked_contact_jacobian
 from safewbc_jax.controller import Terms, constraint_jacobian
 from safewbc_jax.outputs import StepTerms
-from safewbc_jax.robot import RobotModel, _com_jacobians, _dynamics
+from safewbc_jax.robot import Dynamics, RobotModel, _com_jacobians
+
+
+def _dynamics(model, jp, jr, irot, com, acc, alpha, omega):
+    """M, h and the CoM terms as the virtual-work sum over the bodies' CoM Jacobians,
+    M = sum_b m_b Jc_b^T Jc_b + Jw_b^T I_b Jw_b + diag(armature), h = sum_b Jc_b^T m_b
+    (a_b - g) + Jw_b^T (I_b alpha_b + omega_b x I_b omega_b): the reference the composite
+    rigid-body form of ``robot.dynamics`` is checked against."""
+    iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
+    mass = jnp.einsum("b,bin,bim->nm", model.body_mass, jp, jp)
+    mass = mass + jnp.einsum("bin,bij,bjm->nm", jr, iworld, jr) + jnp.diag(model.armature)
+    force = model.body_mass[:, None] * (acc - model.gravity[None])
+    iw = jnp.einsum("bij,bj->bi", iworld, omega)
+    torque = jnp.einsum("bij,bj->bi", iworld, alpha) + jnp.cross(omega, iw)
+    h = jnp.einsum("bin,bi->n", jp, force) + jnp.einsum("bin,bi->n", jr, torque)
+    mtot = jnp.sum(model.body_mass)
+    return Dynamics(M=mass, h=h, com=model.body_mass @ com / mtot,
+                    J_com=jnp.einsum("b,bin->in", model.body_mass, jp) / mtot,
+                    Jdot_v_com=model.body_mass @ acc / mtot)
 
 
 def dynamics_from_jacobians(model: RobotModel, bodies, dbodies, v):
