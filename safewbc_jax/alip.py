@@ -185,13 +185,17 @@ class Momentum(NamedTuple):
 
 def robot_momentum(model, q, v, point):
     """Whole-body CoM, CoM velocity, centroidal angular momentum and angular momentum about
-    ``point`` (world) of a :class:`safewbc_jax.robot.RobotModel` at (q, v), from the body
-    CoM Jacobians of :mod:`safewbc_jax.robot` (rotor armature carries no momentum here, as
-    in MuJoCo's ``subtree_angmom``)."""
+    ``point`` (world) of a :class:`safewbc_jax.robot.RobotModel` at (q, v), from the bodies'
+    velocities in closed form (``robot.body_motion``: a CoM c of a body moves with
+    omega x c + c_dot_0; rotor armature carries no momentum here, as in MuJoCo's
+    ``subtree_angmom``)."""
     from safewbc_jax import robot
 
-    jp, jr, irot, com = robot.com_jacobians(model, robot.forward_kinematics(model, q))
-    vel, omega = jp @ v, jr @ v
+    kin = robot.forward_kinematics(model, q)
+    com, irot = robot.body_com(model, *kin)
+    motion = robot.body_motion(model, kin, v)
+    omega = motion.omega
+    vel = motion.point_velocity(np.arange(com.shape[0]), com)
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
     masses = model.body_mass
     mtot = jnp.sum(masses)

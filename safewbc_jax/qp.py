@@ -67,5 +67,6 @@ def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_
     inf = jnp.full(nv, jnp.inf, dtype)
     lb = jnp.concatenate([-inf, -u_max, jnp.full(nc, -jnp.inf, dtype)])
     ub = jnp.concatenate([inf, u_max, jnp.full(nc, jnp.inf, dtype)])
-    return QP(P=P, q=q, A=A, b=b, G=G, h=hv, lb=lb, ub=ub, soft=soft, nv=nv, nu=nu, nc=nc)
+    return QP(P=P, q=q, A=A, b=b, G=G, h=hv, lb=lb, ub=ub, soft=soft, nv=nv, nu=nu, nc=nc,
+              ng_lambda=G_lambda.shape[0])
 

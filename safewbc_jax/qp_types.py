@@ -14,6 +14,11 @@ its tree structure, not leaves: they survive ``jit``, ``vmap`` and ``tree_map``,
 change of them is a new compile). They are all None for a QP without that structure (a
 generic QP, e.g. from ``solvers.solve_qp``, or a relaxed QP in [x; s]). The solvers take
 every size they need from here; nothing beside the QP tells them Digit's.
+
+``ng_lambda`` (static too) states where G is zero by construction: its first
+``ng_lambda`` rows have entries in the lambda block only (contacts: friction, centre of
+pressure, ZMP), the rest in the q_ddot block only (A-ECBF rows), as ``qp.assemble`` lays
+them out. The elimination multiplies only those blocks. None: no such layout is claimed.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ class Blocks(NamedTuple):
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=list(FIELDS),
-         meta_fields=["nv", "nu", "nc"])
+         meta_fields=["nv", "nu", "nc", "ng_lambda"])
 @dataclasses.dataclass(frozen=True)
 class QP:
     P: jax.Array   # (n, n) symmetric positive semidefinite
@@ -62,6 +67,7 @@ class QP:
     nv: int | None = None   # X = [q_ddot (nv), u (nu), lambda (nc)]; None: no such blocks
     nu: int | None = None
     nc: int | None = None
+    ng_lambda: int | None = None   # rows of G on lambda only, then rows on q_ddot only
 
     @property
     def n(self) -> int:
@@ -92,10 +98,11 @@ class QP:
     def row(self, l: int) -> "QP":
         """The l-th QP of a batch of them (each array's leading axis; one lane's, or one
         recorded step's)."""
-        return QP(*(getattr(self, f)[l] for f in FIELDS), nv=self.nv, nu=self.nu, nc=self.nc)
+        return QP(*(getattr(self, f)[l] for f in FIELDS), nv=self.nv, nu=self.nu, nc=self.nc,
+                  ng_lambda=self.ng_lambda)
 
     def with_arrays(self, fn) -> "QP":
         """fn applied to every array field, the block sizes kept (``tree_map``'s result,
         without its flattening: the host path calls this every control step)."""
         return QP(*(fn(getattr(self, f)) for f in FIELDS), nv=self.nv, nu=self.nu,
-                  nc=self.nc)
+                  nc=self.nc, ng_lambda=self.ng_lambda)

@@ -477,7 +477,7 @@ _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
 def _composite(model: RobotModel, kin, motion: BodyMotion | None):
-    """Composite rigid bodies about the world origin, for the bodies that own a dof.
+    """Composite rigid bodies about the world origin, one per dof (its body's subtree).
 
     Each body's spatial inertia about the origin is (m, m c, I_o) with I_o = I_c +
     m (|c|^2 1 - c c^T); its Newton-Euler force (when ``motion`` is given) is f = m (a -
@@ -485,7 +485,8 @@ def _composite(model: RobotModel, kin, motion: BodyMotion | None):
     I_c omega about the origin. A composite is the sum of these over the body's subtree:
     one product with the static subtree matrix, no pass level by level. Returns (per
     dof: m, m c [3], I_o [6: xx yy zz xy xz yz], and where ``motion`` is given n [3],
-    f [3]; the bodies' CoMs [nb, 3]; their CoM bias accelerations [nb, 3] or None)."""
+    f [3]; the bodies' CoMs [nb, 3]; their CoM bias accelerations [nb, 3] or None).
+    The 3 x 3 products are written out elementwise (``_mat3``): they fuse."""
     xpos, xrot = kin
     com, irot = body_com(model, xpos, xrot)
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
@@ -496,17 +497,15 @@ def _composite(model: RobotModel, kin, motion: BodyMotion | None):
     cols = [m[:, None], mc, jnp.stack([io[:, i, j] for i, j in _SYM], axis=1)]
     acc = None
     if motion is not None:
-        every = np.arange(len(model.body_names))
-        acc = motion.point_bias(every, com)
+        w = motion.omega
+        acc = (jnp.cross(motion.alpha, com) + motion.gamma
+               + jnp.cross(w, jnp.cross(w, com) + motion.c))
         force = m[:, None] * (acc - model.gravity[None])
-        iw = jnp.einsum("bij,bj->bi", iworld, motion.omega)
-        torque = (jnp.einsum("bij,bj->bi", iworld, motion.alpha)
-                  + jnp.cross(motion.omega, iw) + jnp.cross(com, force))
+        torque = (_matvec3(iworld, motion.alpha) + jnp.cross(w, _matvec3(iworld, w))
+                  + jnp.cross(com, force))
         cols += [torque, force]
-    own = _dof_bodies(model)
-    owners, row = np.unique(own, return_inverse=True)
-    comp = jnp.asarray(_subtrees(model)[owners], com.dtype) @ jnp.concatenate(cols, axis=1)
-    return comp[row], com, acc
+    sub = _subtrees(model)[_dof_bodies(model)]                  # [nv, nb], static
+    return jnp.asarray(sub, com.dtype) @ jnp.concatenate(cols, axis=1), com, acc
 
 
 def _joint_space(model: RobotModel, kin, comp):
@@ -522,13 +521,13 @@ def _joint_space(model: RobotModel, kin, comp):
     iw = jnp.stack([ixx * w[:, 0] + ixy * w[:, 1] + ixz * w[:, 2],
                     ixy * w[:, 0] + iyy * w[:, 1] + iyz * w[:, 2],
                     ixz * w[:, 0] + iyz * w[:, 1] + izz * w[:, 2]], axis=1)
-    f_ang = iw + jnp.cross(h, v0)
     f_lin = m * v0 + jnp.cross(w, h)
-    p = w @ f_ang.T + v0 @ f_lin.T                      # [i, j] = S_i . F_j
-    anc = _dof_ancestry(model)
-    upper = np.triu(np.ones((model.nv, model.nv), bool))
-    sel = jnp.where(anc, p, jnp.where(anc.T, p.T, 0.0))
-    mass = jnp.where(upper, sel, sel.T) + jnp.diag(model.armature)
+    force = jnp.concatenate([iw + jnp.cross(h, v0), f_lin], axis=1)     # F_k [nv, 6]
+    p = jnp.concatenate([w, v0], axis=1) @ force.T                      # [i, j] = S_i . F_j
+    # the upper triangle's structural nonzeros (dofs of one joint give both [i, j] and
+    # [j, i]: the upper one is taken, so that M is exactly symmetric)
+    anc = _dof_ancestry(model) & np.triu(np.ones((model.nv, model.nv), bool))
+    mass = jnp.where(anc, p, jnp.where(anc.T, p.T, 0.0)) + jnp.diag(model.armature)
     return mass, f_lin, (w, v0)
 
 

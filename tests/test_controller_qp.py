@@ -125,6 +125,25 @@ def test_reduced_qp_is_the_same_problem(arms_qp, rm):
     assert cost(x_red) == pytest.approx(cost(x_full), rel=1e-7, abs=1e-7)
 
 
+def test_g_layout_is_what_the_qp_claims_and_the_elimination_uses_it(arms_qp, rm):
+    """qp.assemble claims (QP.ng_lambda) that G's contact rows are zero outside lambda and
+    its barrier rows zero outside q_ddot; the elimination then multiplies those blocks
+    only. The claim holds in the arrays, and the reduced QP is the one without the claim
+    (same operations on the nonzero blocks, in another grouping: rounding only)."""
+    qpm, _ = arms_qp
+    k, nv, nu = qpm.ng_lambda, rm.nv, rm.nu
+    assert k == qpm.G.shape[0] - 1            # the arms' one enforced barrier row
+    assert not qpm.G[:k, :nv + nu].any() and not qpm.G[k:, nv:].any()
+    assert np.abs(qpm.G[k:, :nv]).max() > 0 and np.abs(qpm.G[:k, nv + nu:]).max() > 0
+    generic = dataclasses.replace(qpm, ng_lambda=None)
+    for elim in (reduce.eliminate_equalities_np,
+                 jax.jit(reduce.eliminate_equalities, static_argnums=(1, 2))):
+        (got, gmap), (ref, rmap) = elim(qpm, None, True), elim(generic, None, True)
+        for a, b in ((got.G, ref.G), (got.h, ref.h), (got.P, ref.P), (gmap.N, rmap.N)):
+            a, b = np.asarray(a), np.asarray(b)
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
+
+
 def test_barrier_row_in_the_qp(arms_qp, rm, ctrl_mj):
     """The barrier row of G is -(dh/dq) q_ddot <= K_alpha eta + J_dot v with the fist
     height computed independently from MuJoCo."""

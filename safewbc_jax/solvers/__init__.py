@@ -221,7 +221,8 @@ def _jax(qp, fallback, structure, nv, nu, dtype, settings):
                              "indices in every QP of the batch")
         res = jax_qp.solve_batch(qpj, bounded=bounded, dtype=dtype, settings=settings)
     else:
-        res = jax_qp.solve_generic_batch(dataclasses.replace(qpj, nv=None, nu=None, nc=None),
+        res = jax_qp.solve_generic_batch(dataclasses.replace(qpj, nv=None, nu=None, nc=None,
+                                                                     ng_lambda=None),
                                          dtype=dtype, settings=settings)
     x = np.asarray(res.x, dtype=np.float64)
     status = np.asarray(res.status, dtype=np.int32)

@@ -102,8 +102,7 @@ def status_from_piqp(status) -> SolveStatus:
 def qp_to_numpy(qp: QP) -> QP:
     """The QP with float64 numpy arrays (a no-op copy-wise for numpy float64 input), the
     block sizes kept."""
-    return QP(*[np.asarray(getattr(qp, f), dtype=np.float64) for f in FIELDS], nv=qp.nv,
-              nu=qp.nu, nc=qp.nc)
+    return qp.with_arrays(lambda a: np.asarray(a, dtype=np.float64))
 
 
 def residuals(x: np.ndarray, qp: QP) -> tuple[float, float, float]:

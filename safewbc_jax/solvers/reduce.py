@@ -138,8 +138,14 @@ def eliminate(qp: QP, bounded=None, p_blockdiag: bool = False, *, xp=jnp,
         px0 = P[:, iq] @ x0q + P[:, il] @ lam0
     p_r = 0.5 * (p_r + p_r.T)
     q_r = n_t(px0 + qp.q)
-    g_rows = [G[:, iq] @ Nq + G[:, iu] + G[:, il] @ L]
-    h_rows = [qp.h - (G[:, iq] @ x0q + G[:, il] @ lam0)]
+    k = qp.ng_lambda
+    if k is None:
+        g_rows = [G[:, iq] @ Nq + G[:, iu] + G[:, il] @ L]
+        h_rows = [qp.h - (G[:, iq] @ x0q + G[:, il] @ lam0)]
+    else:                             # zero blocks by construction (qp_types: ng_lambda)
+        g_rows = [xp.concatenate([G[:k, il] @ L, G[k:, iq] @ Nq], axis=0)]
+        h_rows = [qp.h - xp.concatenate([xp.sum(G[:k, il] * lam0, axis=1),
+                                         xp.sum(G[k:, iq] * x0q, axis=1)])]
     soft = [qp.soft]
     x0 = xp.concatenate([x0q, xp.zeros(nu, dt), lam0])
     N = xp.concatenate([Nq, xp.eye(nu, dtype=dt), L], axis=0)
