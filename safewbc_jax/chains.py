@@ -23,8 +23,9 @@ def _site_points(model: RobotModel, xpos, xrot, sites):
     return bodies, pts
 
 
-def _order(model: RobotModel):
-    """Per leg: its rods (in model order), then its springs; left leg first."""
+def row_order(model: RobotModel):
+    """The rows of n_kc as ("rod", rod index) or ("spring", dof): per leg its rods (in
+    model order), then its springs; left leg first."""
     rows = []
     for side in ("left", "right"):
         for i, r in enumerate(model.rod_names):
@@ -40,7 +41,7 @@ def _order(model: RobotModel):
 def chain_names(model: RobotModel) -> list[str]:
     """Names of the rows of n_kc, in order."""
     out = []
-    for kind, i in _order(model):
+    for kind, i in row_order(model):
         out.append(model.rod_names[i] if kind == "rod"
                    else model.joint_names[model.body_dadr.index(i)])
     return out
@@ -55,7 +56,7 @@ def n_kc(model: RobotModel, q):
     _, pb = _site_points(model, xpos, xrot, b)
     lengths = jnp.linalg.norm(pa - pb, axis=1)
     out = []
-    for kind, i in _order(model):
+    for kind, i in row_order(model):
         out.append(lengths[i] if kind == "rod" else q[i + 1])  # hinge qpos = dof + 1
     return jnp.stack(out)
 
@@ -63,7 +64,7 @@ def n_kc(model: RobotModel, q):
 def n_kc_target(model: RobotModel):
     """The values n_kc is held at: rod lengths and zero spring deflection."""
     out = [model.rod_length[i] if kind == "rod" else jnp.zeros((), model.rod_length.dtype)
-           for kind, i in _order(model)]
+           for kind, i in row_order(model)]
     return jnp.stack(out)
 
 
@@ -86,7 +87,7 @@ def chain_jacobian(model: RobotModel, q, kin=None):
     u = d / jnp.linalg.norm(d, axis=1, keepdims=True)
     jrod = jnp.einsum("ni,nik->nk", u, ja - jb)
     rows = []
-    for kind, i in _order(model):
+    for kind, i in row_order(model):
         rows.append(jrod[i] if kind == "rod" else jnp.asarray(np.eye(model.nv)[i], q.dtype))
     return jnp.stack(rows)
 

@@ -46,34 +46,50 @@ def constraint_jacobian(model: robot.RobotModel, q, kin=None):
 
 
 def constraint_drift(model: robot.RobotModel, kin, motion: robot.BodyMotion):
-    """J_dot v of [J_chain; J_cont] (22 rows) in closed form from the body motion of the state.
+    """J_dot v of [J_chain; J_cont] (22 rows) in closed form (``constraint_terms``)."""
+    return constraint_terms(model, kin, motion)[1]
+
+
+def constraint_terms(model: robot.RobotModel, kin, motion: robot.BodyMotion):
+    """J = [J_chain; J_cont] (eqs. 2-3) and its drift J_dot v in closed form, from the
+    world points of every rod end and both soles taken together (one set of point
+    Jacobians, velocities and bias accelerations: XLA on the CPU pays per operation).
 
     A rod row is u^T (J_a - J_b) with u = d / |d|, d = p_a - p_b: its drift is
     (|d_dot|^2 - (u . d_dot)^2) / |d| + u . (a_a - a_b), a the points' bias
-    accelerations; a spring row is constant (drift 0). A contact row block is
-    [R^T x_dot; R^T omega] with R the sole frame (R_dot = omega x R): its drift is
+    accelerations; a spring row is constant (e_k; drift 0). A contact row block is
+    [R^T J_p; R^T J_w] with R the sole frame (R_dot = omega x R): its drift is
     [R^T (a - omega x x_dot); R^T alpha]."""
     xpos, xrot = kin
-    ba, pa = chains._site_points(model, xpos, xrot, [a for a, _ in model.rod_sites])
-    bb, pb = chains._site_points(model, xpos, xrot, [b for _, b in model.rod_sites])
-    va, vb = motion.point_velocity(ba, pa), motion.point_velocity(bb, pb)
-    d, dd = pa - pb, va - vb
+    nr = len(model.rod_sites)
+    feet = [model.site_id(f) for f in contacts.FEET]
+    sites = np.array([a for a, _ in model.rod_sites] + [b for _, b in model.rod_sites] + feet)
+    bodies = np.array([model.site_body[s] for s in sites])
+    p = xpos[bodies] + jnp.einsum("nij,nj->ni", xrot[bodies], model.site_pos[sites])
+    jp, jw = robot.point_jacobians(model, xpos, xrot, bodies, p)
+    vel = motion.point_velocity(bodies, p)
+    acc = motion.point_bias(bodies, p, vel)
+    d, dd = p[:nr] - p[nr:2 * nr], vel[:nr] - vel[nr:2 * nr]
     dist = jnp.linalg.norm(d, axis=1)
     u = d / dist[:, None]
     u_dd = jnp.sum(u * dd, axis=1)
-    rod = ((jnp.sum(dd * dd, axis=1) - u_dd * u_dd) / dist
-           + jnp.sum(u * (motion.point_bias(ba, pa, va) - motion.point_bias(bb, pb, vb)), axis=1))
-    zero = jnp.zeros((), rod.dtype)
-    chain = jnp.stack([rod[i] if kind == "rod" else zero for kind, i in chains._order(model)])
-    sites = [model.site_id(f) for f in contacts.FEET]
-    bodies = np.array([model.site_body[s] for s in sites])
-    p = xpos[bodies] + jnp.einsum("nij,nj->ni", xrot[bodies], model.site_pos[np.array(sites)])
-    r = xrot[bodies] @ model.site_rot[np.array(sites)]
-    xd = motion.point_velocity(bodies, p)
-    lin = motion.point_bias(bodies, p, xd) - jnp.cross(motion.omega[bodies], xd)
-    world = jnp.concatenate([lin, motion.alpha[bodies]], axis=1).reshape(-1, 2, 3)
-    cont = jnp.einsum("nji,nkj->nki", r, world).reshape(-1)  # R^T per foot and block
-    return jnp.concatenate([chain, cont])
+    rod_j = jnp.einsum("ni,nik->nk", u, jp[:nr] - jp[nr:2 * nr])
+    rod_d = ((jnp.sum(dd * dd, axis=1) - u_dd * u_dd) / dist
+             + jnp.sum(u * (acc[:nr] - acc[nr:2 * nr]), axis=1))
+    order = chains.row_order(model)
+    springs = [i for kind, i in order if kind == "spring"]
+    # the rows in n_kc's order: rods from rod_j, springs from the constant rows after them
+    perm = np.array([i if kind == "rod" else nr + springs.index(i) for kind, i in order])
+    chain_j = jnp.concatenate([rod_j, jnp.asarray(np.eye(model.nv)[springs], p.dtype)])[perm]
+    chain_d = jnp.concatenate([rod_d, jnp.zeros(len(springs), p.dtype)])[perm]
+    rt = jnp.swapaxes(xrot[bodies[2 * nr:]] @ model.site_rot[np.array(feet)], 1, 2)  # R^T
+    cont_j = jnp.concatenate([rt @ jp[2 * nr:], rt @ jw[2 * nr:]], axis=1).reshape(-1, model.nv)
+    w = motion.omega[bodies[2 * nr:]]
+    world = jnp.stack([acc[2 * nr:] - jnp.cross(w, vel[2 * nr:]),
+                       motion.alpha[bodies[2 * nr:]]], axis=1)          # [foot, 2, 3]
+    cont_d = jnp.einsum("nij,nkj->nki", rt, world).reshape(-1)
+    return (jnp.concatenate([chain_j, cont_j], axis=0),
+            jnp.concatenate([chain_d, cont_d]))
 
 
 def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
@@ -86,8 +102,8 @@ def robot_terms(model: robot.RobotModel, scenario, q, v, domain=None) -> Terms:
     dyn = robot.dynamics(model, kin, motion)
     step = outputs_mod.StepTerms(dyn, kin, motion, domain)
     outs = {o.name: o.evaluate(model, q, v, step) for o in scenario.outputs}
-    return Terms(dyn.M, dyn.h, constraint_jacobian(model, q, kin),
-                 constraint_drift(model, kin, motion), outs, kin, motion)
+    jac, drift = constraint_terms(model, kin, motion)
+    return Terms(dyn.M, dyn.h, jac, drift, outs, kin, motion)
 
 
 def n_chain_rows(model) -> int:

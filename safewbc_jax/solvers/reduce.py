@@ -118,36 +118,38 @@ def eliminate(qp: QP, bounded=None, p_blockdiag: bool = False, *, xp=jnp,
     D = A[nv:, il]
     hq = -qp.b[:nv]
     r = qp.b[nv:]
-    sol = la.chol_solve(la.chol(M), xp.concatenate([Bm, Jt, hq[:, None]], axis=1))
-    a, c, e = sol[:, :nu], sol[:, nu:-1], sol[:, -1]
-    rhs = la.solve(Jr @ c + D, xp.concatenate([(r + Jr @ e)[:, None], -(Jr @ a)], axis=1))
-    lam0, L = rhs[:, 0], rhs[:, 1:]
-    Nq = a + c @ L
-    x0q = c @ lam0 - e
-
-    def n_t(v):                       # N' v for v over X
-        return Nq.T @ v[iq] + v[iu] + L.T @ v[il]
-
-    if p_blockdiag:
-        PNq, PNl = P[iq, iq] @ Nq, P[il, il] @ L
-        p_r = Nq.T @ PNq + P[iu, iu] + L.T @ PNl
-        px0 = xp.concatenate([P[iq, iq] @ x0q, xp.zeros(nu, dt), P[il, il] @ lam0])
+    # Each product below carries the u = 0 column beside N's nu columns ([x0 | N] per
+    # block): a handful of larger products instead of twice as many small ones (XLA on
+    # the CPU pays per operation).
+    sol = la.chol_solve(la.chol(M), xp.concatenate([-hq[:, None], Bm, Jt], axis=1))
+    js = Jr @ sol                                   # [-J e, J a, J c]
+    lam = la.solve(js[:, nu + 1:] + D, xp.concatenate([r[:, None], xp.zeros_like(js[:, :nu])],
+                                                      axis=1) - js[:, :nu + 1])
+    y = sol[:, nu + 1:] @ lam + sol[:, :nu + 1]    # [x0 | N] on q_ddot; lam: on lambda
+    x0q, Nq, lam0, L = y[:, 0], y[:, 1:], lam[:, 0], lam[:, 1:]
+    yl = xp.concatenate([y, lam], axis=0)
+    x0 = xp.concatenate([x0q, xp.zeros(nu, dt), lam0])
+    if p_blockdiag:                   # [x0 | N]' P [x0 | N] and N' q in one product
+        py = xp.concatenate([P[iq, iq] @ y, P[il, il] @ lam], axis=0)
+        ql = xp.concatenate([qp.q[iq], qp.q[il]])[:, None]
+        hh_ = yl.T @ xp.concatenate([py, ql], axis=1)
+        p_r = hh_[1:, 1:-1] + P[iu, iu]
+        q_r = hh_[1:, 0] + hh_[1:, -1] + qp.q[iu]
     else:
         PN = P[:, iq] @ Nq + P[:, iu] + P[:, il] @ L
         p_r = Nq.T @ PN[iq] + PN[iu] + L.T @ PN[il]
-        px0 = P[:, iq] @ x0q + P[:, il] @ lam0
+        px0 = P @ x0 + qp.q
+        q_r = Nq.T @ px0[iq] + px0[iu] + L.T @ px0[il]
     p_r = 0.5 * (p_r + p_r.T)
-    q_r = n_t(px0 + qp.q)
     k = qp.ng_lambda
     if k is None:
-        g_rows = [G[:, iq] @ Nq + G[:, iu] + G[:, il] @ L]
-        h_rows = [qp.h - (G[:, iq] @ x0q + G[:, il] @ lam0)]
+        gx = G[:, iq] @ y + G[:, il] @ lam
+        g_rows = [gx[:, 1:] + G[:, iu]]
     else:                             # zero blocks by construction (qp_types: ng_lambda)
-        g_rows = [xp.concatenate([G[:k, il] @ L, G[k:, iq] @ Nq], axis=0)]
-        h_rows = [qp.h - xp.concatenate([xp.sum(G[:k, il] * lam0, axis=1),
-                                         xp.sum(G[k:, iq] * x0q, axis=1)])]
+        gx = xp.concatenate([G[:k, il] @ lam, G[k:, iq] @ y], axis=0)
+        g_rows = [gx[:, 1:]]
+    h_rows = [qp.h - gx[:, 0]]
     soft = [qp.soft]
-    x0 = xp.concatenate([x0q, xp.zeros(nu, dt), lam0])
     N = xp.concatenate([Nq, xp.eye(nu, dtype=dt), L], axis=0)
     if bounded.size:
         Nb, xb = N[bounded], x0[bounded]
