@@ -67,8 +67,7 @@ def parts(name, q0, v0) -> dict:
             (lambda k, v: robot.body_motion(m, k, v), kin, v),
         "M, h, CoM terms": (lambda k, mo: robot.dynamics(m, k, mo), kin, motion),
         "constraint Jacobians and drifts":
-            (lambda q, k, mo: (controller.constraint_jacobian(m, q, k),
-                               controller.constraint_drift(m, k, mo)), q, kin, motion),
+            (lambda k, mo: controller.constraint_terms(m, k, mo), kin, motion),
         "outputs": (lambda q, v, d, k, mo: {o.name: o.evaluate(m, q, v, StepTerms(d, k, mo))
                                             for o in sc.outputs}, q, v, dyn, kin, motion),
         "robot terms (all of the above)":
