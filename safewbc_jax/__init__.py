@@ -67,6 +67,25 @@ def require_x64(what: str) -> None:
                            "first (or set JAX_ENABLE_X64=1)")
 
 
+def use_cpu() -> None:
+    """Run this process's JAX on the CPU (``jax_platforms = "cpu"``), whatever accelerator
+    and JAX plugin the machine has: the single robot's step (``safewbc run``, a deployed
+    controller) and the mujoco engine's sweep workers are CPU programs, and a CUDA backend
+    would also take most of a GPU's memory in each of those processes. JAX reads it when it
+    starts a backend: call this before the process's first JAX array or compile. A process
+    whose backend is already up on another platform raises RuntimeError."""
+    import jax
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        if jax.default_backend() != "cpu":
+            raise RuntimeError("use_cpu(): JAX already runs on "
+                               f"{jax.default_backend()!r} in this process; call it before "
+                               "the first JAX array or compile")
+        return
+    jax.config.update("jax_platforms", "cpu")
+
+
 def use_compile_cache(directory: str) -> None:
     """Keep this process's compiled XLA programs in ``directory`` (JAX's persistent
     compilation cache) and load them from there in later processes: every program, the

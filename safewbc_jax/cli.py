@@ -338,6 +338,8 @@ def main(argv=None) -> int:
     import safewbc_jax
 
     safewbc_jax.enable_x64()
+    if args.command == "run" or getattr(args, "engine", None) == "mujoco":
+        safewbc_jax.use_cpu()      # one robot's step, or the CPU engine's driver: never a GPU
     try:
         if args.command == "run":
             pin_to_cpu(args.cpu)

@@ -16,6 +16,9 @@
     The polish solves the KKT system of the active set the float32 iterations found, in
     float64, so the torques are float64's wherever that active set is the optimum's.
 
+    float32 is float32 on every backend: the float32 stages are traced at full float32
+    matrix-product precision (``full_float32``), so a GPU's TF32 never replaces it.
+
 Why not float32 throughout: the reduced QP in the torques has a Hessian of condition
 number ~1e7 (the contact forces' small regularisation Gamma, seen through the
 elimination), about 1/eps of float32. Measured on the recorded fixture
@@ -35,6 +38,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from safewbc_jax.solvers.settings import full_float32
 
 PRECISIONS = ("float64", "mixed")
 
@@ -72,7 +77,8 @@ def cast_floats(tree, dtype):
 
 def physics(step, dtype):
     """``step(model, data) -> data`` traced so that it keeps ``dtype`` (float32 under
-    ``jax.enable_x64(False)``, see the module docstring; float64 as it is) and returns each
+    ``jax.enable_x64(False)`` and ``full_float32``, see the module docstring; float64 as it
+    is) and returns each
     leaf of ``data`` in the dtype it was given, so that the data can be a loop carry:
     MJX's ``put_data`` makes the contacts' geom indices int32 and, under x64, ``mjx.step``
     returns them int64 (values that fit either). Knowing the step's dtypes beforehand
@@ -82,7 +88,7 @@ def physics(step, dtype):
         if jnp.dtype(dtype) == jnp.float64:
             out = step(model, data)
         else:
-            with jax.enable_x64(False):
+            with jax.enable_x64(False), full_float32():
                 out = step(model, data)
         return jax.tree_util.tree_map(
             lambda o, i: o if o.dtype == i.dtype else o.astype(i.dtype), out, data)
@@ -90,4 +96,5 @@ def physics(step, dtype):
     return keep_dtypes
 
 
-__all__ = ["PRECISIONS", "check", "physics_dtype", "qp_settings", "cast_floats", "physics"]
+__all__ = ["PRECISIONS", "check", "physics_dtype", "qp_settings", "cast_floats", "full_float32",
+           "physics"]

@@ -102,3 +102,26 @@ def test_the_cpu_lowering_keeps_its_sub_batches():
     elimination = [s[0] for s in controller if s[-2:] == (36, 36)]      # M's Cholesky
     assert elimination and max(elimination) < R.CPU_CHUNK, controller
     assert not any(t.startswith("cusolver") for t, _ in custom_calls(mlir))
+
+
+def float32_products(mlir: str):
+    """(precision attribute or "", line) of each float32 ``dot_general`` or convolution of
+    a StableHLO module."""
+    out = []
+    for line in mlir.splitlines():
+        if ("stablehlo.dot_general" in line or "stablehlo.convolution" in line) and \
+                re.search(r":\s*\(tensor<[\dx]*f32>", line):
+            m = re.search(r"precision = \[([A-Z_, ]+)\]", line)
+            out.append((m.group(1) if m else "", line.strip()[:160]))
+    return out
+
+
+def test_mixed_loop_runs_its_float32_products_at_full_precision():
+    """The mixed mode's float32 stages (MJX's physics, the interior point) lowered for
+    CUDA: every float32 product carries HIGHEST precision, so an Ampere or newer GPU does
+    not run it in TF32 (JAX's default there)."""
+    mlir = R.export(R.BatchConfig("squat", precision="mixed"), 8, ("cuda",)).mlir_module()
+    products = float32_products(mlir)
+    assert len(products) > 10, "the parser finds no float32 product in the mixed loop"
+    loose = [line for prec, line in products if prec != "HIGHEST, HIGHEST"]
+    assert not loose, f"{len(loose)} of {len(products)} float32 products below HIGHEST: {loose[:3]}"

@@ -126,13 +126,16 @@ def user_runs(tmp_path_factory):
     shutil.copy(EXAMPLE, tmp / "side_sway.py")
     (tmp / "sway.toml").write_text(SPEC)
     env = sweep_env(1)
+    # the CPU paths run where the environment asks JAX for CUDA, which this machine cannot
+    # start: they select the CPU themselves (safewbc_jax.use_cpu; tests/test_cpu_platform.py)
+    cpu_env = {**env, "JAX_PLATFORMS": "cuda"}
     cli = [sys.executable, "-m", "safewbc_jax.cli"]
     sweep = cli + ["sweep", "sway.toml", "--batch", "2", "--quiet"]
     procs = {
         "run": subprocess.Popen(cli + ["run", "side_sway.py:SIDE_SWAY", "--duration", "1.6",
                                        "--settle", "1.0", "--out", "run", "--cpu", "-1",
                                        "--safe-set", LEAN],
-                                cwd=tmp, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                cwd=tmp, env=cpu_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 text=True),
         "mjx": subprocess.Popen(sweep + ["--out", "mjx", "--engine", "mjx"], cwd=tmp, env=env,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
@@ -140,7 +143,7 @@ def user_runs(tmp_path_factory):
     run = procs["run"].communicate(timeout=1500)
     out = {"run": (procs["run"].returncode, *run)}
     mujoco = subprocess.run(sweep + ["--out", "mujoco", "--engine", "mujoco", "--workers", "1"],
-                            cwd=tmp, env=env, capture_output=True, text=True, timeout=1500)
+                            cwd=tmp, env=cpu_env, capture_output=True, text=True, timeout=1500)
     out["mujoco"] = (mujoco.returncode, mujoco.stdout, mujoco.stderr)
     mjx = procs["mjx"].communicate(timeout=1500)
     out["mjx"] = (procs["mjx"].returncode, *mjx)

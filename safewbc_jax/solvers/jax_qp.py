@@ -65,7 +65,7 @@ from safewbc_jax.solvers.polish import polish
 from safewbc_jax.solvers.reduce import has_controller_structure, p_block_diagonal
 from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NAMES, FALLBACK_NONE,
                                         FALLBACK_RELAXED, SolveResult)
-from safewbc_jax.solvers.settings import Settings, settings_for
+from safewbc_jax.solvers.settings import Settings, full_float32, settings_for
 from safewbc_jax.solvers.status import INFEASIBLE, NUMERICAL, SOLVED
 
 Result = SolveResult
@@ -99,7 +99,8 @@ def _solve_box(P, q, G, h, lb, ub, sig, st: Settings, active, relax: bool):
         lo = jnp.dtype(st.ipm_dtype)
         pb_lo = jax.tree_util.tree_map(lambda a: a.astype(lo) if a.dtype == dt else a, pb)
         st_lo = Settings.for_dtype(lo, max_iter=st.max_iter, fallback=st.fallback)
-        it, status, k = interior_point(pb_lo, st_lo, active)
+        with full_float32():        # no TF32 on a GPU (precision.full_float32)
+            it, status, k = interior_point(pb_lo, st_lo, active)
         it = jax.tree_util.tree_map(lambda a: a.astype(dt), it)
     else:
         it, status, k = interior_point(pb, st, active)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN
@@ -54,9 +55,19 @@ class Settings:
         return Settings(**{**base, **overrides})
 
 
+def full_float32():
+    """A context in which every matrix product traced is at full float32 precision
+    (``jax.default_matmul_precision("highest")``), for the float32 stages of the mixed
+    mode (``ipm_dtype``; ``precision.physics``): on Ampere and newer GPUs JAX's default
+    lets float32 products run in TF32 (a 10-bit mantissa), too coarse for the interior
+    point's reduced Hessians (condition numbers of 1e7-5e8). XLA:CPU computes float32
+    products in float32 either way."""
+    return jax.default_matmul_precision("highest")
+
+
 def settings_for(dtype, settings: Settings | None) -> Settings:
     """``settings``, or the defaults of ``dtype`` (``Settings.for_dtype``) when None."""
     return settings if settings is not None else Settings.for_dtype(dtype)
 
 
-__all__ = ["Settings", "settings_for", "BIG"]
+__all__ = ["Settings", "settings_for", "full_float32", "BIG"]

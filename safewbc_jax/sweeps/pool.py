@@ -90,6 +90,7 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
     try:
         import safewbc_jax
 
+        safewbc_jax.use_cpu()          # a CPU engine: never a GPU backend, whatever is installed
         safewbc_jax.enable_x64()
         if job.get("cache_dir"):
             safewbc_jax.use_compile_cache(job["cache_dir"])
