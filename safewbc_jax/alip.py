@@ -195,7 +195,7 @@ def robot_momentum(model, q, v, point):
     com, irot = robot.body_com(model, *kin)
     motion = robot.body_motion(model, kin, v)
     omega = motion.omega
-    vel = motion.point_velocity(np.arange(com.shape[0]), com)
+    vel = motion.point_velocity(None, com)
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
     masses = model.body_mass
     mtot = jnp.sum(masses)

@@ -373,14 +373,19 @@ class BodyMotion(NamedTuple):
     alpha: jax.Array
     gamma: jax.Array
 
+    def _of(self, field, bodies):
+        return field if bodies is None else field[bodies]
+
     def point_velocity(self, bodies, x):
-        return jnp.cross(self.omega[bodies], x) + self.c[bodies]
+        """Velocities of points x [n, 3] fixed on ``bodies`` (None: one point per body)."""
+        return jnp.cross(self._of(self.omega, bodies), x) + self._of(self.c, bodies)
 
     def point_bias(self, bodies, x, xdot=None):
-        """J_p_dot v of points x [n, 3] fixed on ``bodies``."""
-        w = self.omega[bodies]
+        """J_p_dot v of points x [n, 3] fixed on ``bodies`` (None: one point per body)."""
+        w = self._of(self.omega, bodies)
         xdot = self.point_velocity(bodies, x) if xdot is None else xdot
-        return jnp.cross(self.alpha[bodies], x) + self.gamma[bodies] + jnp.cross(w, xdot)
+        return (jnp.cross(self._of(self.alpha, bodies), x) + self._of(self.gamma, bodies)
+                + jnp.cross(w, xdot))
 
 
 def body_motion(model: RobotModel, kin, v) -> BodyMotion:
@@ -404,7 +409,7 @@ def body_motion(model: RobotModel, kin, v) -> BodyMotion:
     w, o, t = _dof_motion(model, xpos, xrot)
     mask = model.ancestor_dof
     vv = v[:, None]
-    vel = mask @ jnp.concatenate([w * vv, (t - jnp.cross(w, o)) * vv], axis=1)  # [nb, 6]
+    vel = mask @ jnp.concatenate([w * vv, _spatial_axes(w, o, t)[1] * vv], axis=1)  # [nb, 6]
     omega, c = vel[:, :3], vel[:, 3:]
     db = _dof_bodies(model)
     wdot = jnp.cross(omega[db], w)
@@ -485,8 +490,7 @@ def _composite(model: RobotModel, kin, motion: BodyMotion | None):
     I_c omega about the origin. A composite is the sum of these over the body's subtree:
     one product with the static subtree matrix, no pass level by level. Returns (per
     dof: m, m c [3], I_o [6: xx yy zz xy xz yz], and where ``motion`` is given n [3],
-    f [3]; the bodies' CoMs [nb, 3]; their CoM bias accelerations [nb, 3] or None).
-    The 3 x 3 products are written out elementwise (``_mat3``): they fuse."""
+    f [3]; the bodies' CoMs [nb, 3]; their CoM bias accelerations [nb, 3] or None)."""
     xpos, xrot = kin
     com, irot = body_com(model, xpos, xrot)
     iworld = jnp.einsum("bij,bj,bkj->bik", irot, model.body_inertia, irot)
@@ -498,8 +502,7 @@ def _composite(model: RobotModel, kin, motion: BodyMotion | None):
     acc = None
     if motion is not None:
         w = motion.omega
-        acc = (jnp.cross(motion.alpha, com) + motion.gamma
-               + jnp.cross(w, jnp.cross(w, com) + motion.c))
+        acc = motion.point_bias(None, com)
         force = m[:, None] * (acc - model.gravity[None])
         torque = (_matvec3(iworld, motion.alpha) + jnp.cross(w, _matvec3(iworld, w))
                   + jnp.cross(com, force))
@@ -512,7 +515,7 @@ def _joint_space(model: RobotModel, kin, comp):
     """M (armature on the diagonal) and the CoM Jacobian from the per-dof composites:
     with S_k = [w_k; v0_k] (``_spatial_axes``) and F_k = I^c_k S_k = [I_o w + (m c) x v0;
     m v0 + w x (m c)], M[i, j] = S_i . F_j where dof i moves dof j's body (the composite
-    rigid-body algorithm's entries, Featherstone 2008, eq. 6.7 form), zero elsewhere by
+    rigid-body algorithm's entries, Featherstone 2008, ch. 6), zero elsewhere by
     structure; column k of m_tot J_CoM is F_k's linear part. Also returns the axes."""
     xpos, xrot = kin
     w, v0 = _spatial_axes(*_dof_motion(model, xpos, xrot))
