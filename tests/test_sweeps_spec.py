@@ -274,6 +274,22 @@ def test_chunk_plan_and_atomic_parquet(tmp_path):
         table_mod.read_manifest(tmp_path)
 
 
+def test_a_second_plan_never_replaces_the_first(tmp_path):
+    """Hosts sharing one folder (``--hosts``) share its first plan: a manifest with another
+    batch is refused even before any chunk has finished, the file is left as the first
+    host wrote it, and a host with the same plan gets it back."""
+    out = tmp_path / "shared"
+    man = {"fingerprint": "abc", "seed": 1, "batch": 4, "n_rollouts": 10, "engine": "mjx"}
+    assert table_mod.open_manifest(out, man, "x = 1\n") == man
+    first = (out / table_mod.MANIFEST).read_bytes()
+    with pytest.raises(table_mod.TableError, match=r"batch = 4, this one has 8 \(another "
+                       r"--batch\).*no chunk of it has finished"):
+        table_mod.open_manifest(out, {**man, "batch": 8, "n_rollouts": 10})
+    assert (out / table_mod.MANIFEST).read_bytes() == first
+    assert table_mod.open_manifest(out, dict(man)) == man
+    assert not [f.name for f in out.iterdir() if ".tmp-" in f.name]   # no temp file left
+
+
 def _fake_table(tmp_path):
     """A table with the columns run_sweep writes, filled from a made-up closed form (a
     report test only; every rollout test runs the real batched path)."""

@@ -69,43 +69,68 @@ def remove_partial(out: Path, chunks=None) -> list[str]:
 
 
 def open_manifest(out: Path, manifest: dict, spec_text: str | None = None) -> dict:
-    """Create DIR/sweep.json, or check that an existing one describes the same sweep
-    (spec fingerprint, seed, batch); raises TableError naming what differs."""
+    """Create DIR/sweep.json exclusively, or check that the existing one describes the same
+    sweep (spec fingerprint, seed, batch, plan, engine); raises TableError naming what
+    differs. The manifest is never overwritten: several hosts (``--hosts``) share one
+    folder, and a plan written by one is the plan of all of them, also before any chunk of
+    it has finished."""
     out = Path(out)
     path = out / MANIFEST
-    if path.exists():
-        try:
-            old = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise TableError(f"{path}: unreadable manifest ({e}); remove {out} or use another "
-                             "--out") from None
-        # a table from before the engines was written by the mjx engine
-        old, new = {"engine": "mjx", **old}, {"engine": "mjx", **manifest}
-        for m in (old, new):   # a mujoco table from before sim.lockstep ran one at a time
-            if m["engine"] == "mujoco":
-                m.setdefault("lockstep", 1)
-        keys = ("fingerprint", "seed", "batch", "n_rollouts", "engine", "lockstep")
-        same = all(old.get(k) == new.get(k) for k in keys)
-        if not same and not finished_chunks(out):
-            old = None   # nothing finished under the old plan: nothing to lose, start over
-        for key, what in (("fingerprint", "a different spec"), ("seed", "another --seed"),
-                          ("batch", "another --batch"), ("n_rollouts", "a different plan"),
-                          ("engine", "another --engine"),
-                          ("lockstep", "another lockstep width: another version of the engine")):
-            if old is not None and old.get(key) != new.get(key):
-                raise TableError(
-                    f"{out} holds a sweep with {key} = {old.get(key)!r}, this one has "
-                    f"{new.get(key)!r} ({what}); resume with the same spec, --seed, "
-                    "--batch and --engine, or write to another --out")
-        if old is not None:
-            return old
     if not path.exists() and out.exists() and any(out.iterdir()) and not (out / CHUNKS).exists():
         raise TableError(f"{out} exists and is not a sweep directory; use another --out")
     (out / CHUNKS).mkdir(parents=True, exist_ok=True)
-    _atomic_write_text(path, json.dumps(manifest, indent=2))
-    if spec_text is not None:
-        _atomic_write_text(out / "spec.toml", spec_text)
-    return manifest
+    if _create_exclusive(path, json.dumps(manifest, indent=2)):
+        if spec_text is not None:
+            _atomic_write_text(out / "spec.toml", spec_text)
+        return manifest
+    try:
+        old = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise TableError(f"{path}: unreadable manifest ({e}); remove {out} or use another "
+                         "--out") from None
+    # a table from before the engines was written by the mjx engine
+    old, new = {"engine": "mjx", **old}, {"engine": "mjx", **manifest}
+    for m in (old, new):   # a mujoco table from before sim.lockstep ran one at a time
+        if m["engine"] == "mujoco":
+            m.setdefault("lockstep", 1)
+    empty = ("" if finished_chunks(out) else
+             f"; no chunk of it has finished: removing {out} loses nothing")
+    for key, what in (("fingerprint", "a different spec"), ("seed", "another --seed"),
+                      ("batch", "another --batch"), ("n_rollouts", "a different plan"),
+                      ("engine", "another --engine"),
+                      ("lockstep", "another lockstep width: another version of the engine")):
+        if old.get(key) != new.get(key):
+            raise TableError(
+                f"{out} holds a sweep with {key} = {old.get(key)!r}, this one has "
+                f"{new.get(key)!r} ({what}); resume with the same spec, --seed, --batch and "
+                f"--engine, or write to another --out{empty}")
+    return old
+
+
+def _create_exclusive(path: Path, text: str) -> bool:
+    """Write ``path`` with ``text`` unless it exists (False then), atomically: the full
+    text in a temporary file of this host and process, hard-linked to ``path`` (a link
+    fails where the name exists, on local and network file systems alike)."""
+    tmp = path.with_name(f".{path.name}.tmp-{_writer_id()}")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    try:
+        os.link(tmp, path)
+        return True
+    except FileExistsError:
+        return False
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _writer_id() -> str:
+    """This host and process, for temporary file names several hosts may write side by
+    side in one shared folder."""
+    import socket
+
+    return f"{socket.gethostname()}-{os.getpid()}"
 
 
 def read_manifest(out: Path) -> dict:
@@ -117,7 +142,7 @@ def read_manifest(out: Path) -> dict:
 
 
 def _atomic_write_text(path: Path, text: str):
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = path.with_name(f".{path.name}.tmp-{_writer_id()}")
     with open(tmp, "w") as f:
         f.write(text)
         f.flush()
@@ -139,7 +164,7 @@ def write_chunk(out: Path, k: int, columns: dict, metadata: dict | None = None) 
     table = pa.table({name: pa.array(np.asarray(v)) for name, v in columns.items()})
     if metadata:
         table = table.replace_schema_metadata({"safewbc": json.dumps(metadata)})
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    tmp = final.with_name(f".{final.name}.tmp-{_writer_id()}")
     with open(tmp, "wb") as f:
         pq.write_table(table, f)
         f.flush()
