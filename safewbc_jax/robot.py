@@ -458,18 +458,11 @@ def _subtrees(model: RobotModel) -> np.ndarray:
 
 
 def _dof_ancestry(model: RobotModel) -> np.ndarray:
-    """Static [nv, nv] bool: [i, j] where dof i moves the body of dof j (i is dof j's
-    ancestor in the tree, or a dof of the same joint): M[i, j] is not zero by structure
-    only there and at [j, i]."""
-    nb = len(model.body_names)
+    """Static [nv, nv] bool: [i, j] where dof i moves the body of dof j (dof j's body is in
+    the subtree of dof i's, the same body for dofs of one joint): M[i, j] is not zero by
+    structure only there and at [j, i]."""
     own = _dof_bodies(model)
-    moves = np.zeros((nb, model.nv), bool)       # [b, k]: dof k moves body b
-    for b in range(nb):
-        c = b
-        while c >= 0:
-            moves[b, own == c] = True
-            c = model.body_parent[c]
-    return moves[own].T
+    return _subtrees(model)[np.ix_(own, own)] > 0
 
 
 def _spatial_axes(w, o, t):
