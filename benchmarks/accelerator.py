@@ -5,13 +5,15 @@ For each --scenarios, --precisions and --batches (B rollouts, --duration s of mo
 the scenario's settle, lateral pushes of 0 to 30 N drawn from a seed, so that the rollouts
 differ):
 
-  compile_s        the first compile of the closed loop (``rollout.memory_bytes``: lower and
-                   compile, no run)
+  compile_s        the compile of the closed loop (``rollout.memory_bytes`` of the program
+                   ``run_batch`` runs, chunk "auto": one compile per batch, which the runs
+                   after it reuse)
   memory           bytes of the compiled program (arguments, outputs, temporaries); from
                    the first two batches, bytes per rollout and the largest batch that
                    fits in 24, 80 and 141 GB (90% of it)
-  robot_steps_s    B x control steps / the time of one ``run_batch`` call, after a first
-                   call that loads the compiled program
+  robot_steps_s    B x control steps / the time of one ``run_batch`` call, after a
+                   warm-up call of 1 ms of motion after the shortest settle (1 s; the
+                   durations are run-time values of the same compiled program)
   mjx_steps_s      bare ``mjx.step`` (vmapped, scanned) at the same batch and precision, in
                    physics steps/s and in control steps/s (``n_sub`` physics steps each);
                    a compile of its own per batch (about 20 s on a 2-core CPU), so
@@ -25,8 +27,11 @@ differ):
 (``memory_stats()["bytes_limit"]``; on a CPU: 24 GB), from the memory model of the first
 two batches. Needs: jax (with CUDA on a GPU: ``pip install "jax[cuda12]==0.10.2"``),
 mujoco==3.17.0, mujoco-mjx==3.17.0 and this package (``pip install -e . --no-deps``
-beside them). On a GPU it finishes in about 8 minutes at the defaults (untimed here: no
-GPU has run it yet); on a CPU run it small:
+beside them). The defaults are 41 M robot-steps (2 scenarios x 2 precisions x 5,120
+rollouts x 2,000 control steps; the warm-ups 10 M more): 1.7 minutes at the 500k
+robot-steps/s goal, plus eight compiles of the closed loop, four of bare physics and two
+CPU references (benchmarks/README.md has what a GPU measured, where one has run it). On a
+CPU run it small:
 
     python benchmarks/accelerator.py                               # a GPU, the defaults
     python benchmarks/accelerator.py --scenarios arms --batches 2 3 --duration 0.05 \\
@@ -104,10 +109,10 @@ def diff(metrics: dict, ref: dict, rows: int) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenarios", nargs="+", default=["arms", "walk"])
-    ap.add_argument("--batches", nargs="+", default=["1024", "4096", "16384"],
+    ap.add_argument("--batches", nargs="+", default=["1024", "4096"],
                     help="rollouts per batch, or 'auto' (the largest that fits)")
     ap.add_argument("--precisions", nargs="+", default=["float64", "mixed"])
-    ap.add_argument("--duration", type=float, default=1.0, help="s of motion after settle")
+    ap.add_argument("--duration", type=float, default=0.5, help="s of motion after settle")
     ap.add_argument("--ref", type=int, default=8,
                     help="rollouts checked against a CPU float64 run of the same rollouts")
     ap.add_argument("--physics-steps", type=int, default=200)
@@ -169,7 +174,7 @@ def main(argv=None) -> int:
                 while k < len(batches):
                     b = batches[k]
                     t0 = time.perf_counter()
-                    mem[b] = R.memory_bytes(cfg, b)
+                    mem[b] = R.memory_bytes(cfg, b, chunk="auto")   # run_batch's program
                     compile_s = time.perf_counter() - t0
                     if k == 1:
                         b0, b1 = batches[:2]
@@ -186,7 +191,9 @@ def main(argv=None) -> int:
                                 batches.append(auto)
                     push = pushes(b, args.seed)
                     params = R.default_params(sc, b)
-                    R.run_batch(cfg, params, push)                 # loads the program
+                    # warm-up: the compiled program, 1,001 control steps
+                    R.run_batch(R.BatchConfig(sc, duration=1e-3, settle=1.0, precision=prec),
+                                params, push)
                     t0 = time.perf_counter()
                     met, _ = R.run_batch(cfg, params, push)
                     run_s = time.perf_counter() - t0

@@ -57,6 +57,10 @@ def _engine_args(p) -> None:
     p.add_argument("--workers", type=_int_at_least(1), default=None,
                    help="--engine mujoco: worker processes, one pinned to each CPU "
                    "(default: one per CPU this process may use)")
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="run each chunk as a task on a Ray cluster: ADDRESS (HOST:PORT of "
+                   "its head, or auto), or with no address a Ray started on this machine "
+                   "(pip install 'safewbc-jax[ray]'; docs/sweeps.md, 'On a cluster')")
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the on-disk XLA compilation cache")
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
@@ -69,10 +73,46 @@ def _check_engine(args) -> None:
     from safewbc_jax.sweeps.pool import check_workers
 
     if args.workers is not None:
+        if args.ray is not None:
+            raise ValueError(f"--workers {args.workers} with --ray: Ray runs one chunk per "
+                             "CPU of the cluster; --workers is the local pool's")
         if args.engine == "mjx":
             raise ValueError(f"--workers {args.workers}: only the mujoco engine has workers "
                              "(--engine mujoco)")
         check_workers(args.workers)
+    if args.ray is not None:
+        from safewbc_jax.sweeps import cluster
+
+        cluster.connect(args.ray, args.quiet)   # a wrong address fails here, in seconds
+
+
+def hosts_from_env(environ) -> tuple[int, int]:
+    """(hosts, host index) of this process from the cluster's environment: a SLURM job
+    array (SLURM_ARRAY_TASK_COUNT, SLURM_ARRAY_TASK_ID, SLURM_ARRAY_TASK_MIN and _STEP),
+    else SLURM's tasks of one job step (SLURM_NTASKS, SLURM_PROCID). Raises ValueError
+    naming what is missing or wrong."""
+    def number(name):
+        try:
+            return int(environ[name])
+        except ValueError:
+            raise ValueError(f"--distributed: {name}={environ[name]!r} is not an integer"
+                             ) from None
+
+    if "SLURM_ARRAY_TASK_ID" in environ and "SLURM_ARRAY_TASK_COUNT" in environ:
+        step = number("SLURM_ARRAY_TASK_STEP") if "SLURM_ARRAY_TASK_STEP" in environ else 1
+        low = number("SLURM_ARRAY_TASK_MIN") if "SLURM_ARRAY_TASK_MIN" in environ else 0
+        hosts, index = number("SLURM_ARRAY_TASK_COUNT"), (number("SLURM_ARRAY_TASK_ID") - low) // max(step, 1)
+    elif "SLURM_NTASKS" in environ and "SLURM_PROCID" in environ:
+        hosts, index = number("SLURM_NTASKS"), number("SLURM_PROCID")
+    else:
+        raise ValueError("--distributed: found neither a SLURM job array "
+                         "(SLURM_ARRAY_TASK_ID, SLURM_ARRAY_TASK_COUNT) nor SLURM tasks "
+                         "(SLURM_NTASKS, SLURM_PROCID) in the environment; give --hosts N "
+                         "--host-index I instead")
+    if not (hosts >= 1 and 0 <= index < hosts):
+        raise ValueError(f"--distributed: host index {index} of {hosts} hosts from the "
+                         "environment: expected 0 <= index < hosts")
+    return hosts, index
 
 
 def _cmd_sweep(args) -> int:
@@ -81,22 +121,27 @@ def _cmd_sweep(args) -> int:
     from safewbc_jax.sweeps.run import run_sweep
     from safewbc_jax.sweeps.spec import load_spec
 
+    import os
+
     if args.host_index >= args.hosts:
         raise ValueError(f"--host-index {args.host_index}: must be below --hosts {args.hosts}")
-    spec = load_spec(args.spec)          # every check before anything compiles
-    _check_engine(args)
     hosts, index = args.hosts, args.host_index
     if args.distributed:
-        import jax
-
-        jax.distributed.initialize()     # coordinator and process ids from the cluster
-        hosts, index = jax.process_count(), jax.process_index()
+        if args.hosts != 1 or args.host_index != 0:
+            raise ValueError("--distributed reads the hosts from the environment: give it "
+                             "or --hosts/--host-index, not both")
+        hosts, index = hosts_from_env(os.environ)
+    if args.ray is not None and hosts > 1:
+        raise ValueError(f"--ray with {hosts} hosts: Ray schedules every chunk itself; "
+                         "--hosts and --distributed are for job arrays without Ray")
+    spec = load_spec(args.spec)          # every check before anything compiles
+    _check_engine(args)
     _compile_cache(args)
     try:
         r = run_sweep(spec, args.out, batch=args.batch, seed=args.seed,
                       spec_text=Path(args.spec).read_text(), max_chunks=args.max_chunks,
                       hosts=hosts, host_index=index, quiet=args.quiet, engine=args.engine,
-                      workers=args.workers)
+                      workers=args.workers, ray=args.ray)
     except KeyboardInterrupt:
         print(f"safewbc: interrupted; the finished chunks are kept in {args.out}, rerun the "
               "same command to resume", file=sys.stderr)
@@ -104,6 +149,11 @@ def _cmd_sweep(args) -> int:
     rate = "" if r.chunks_run == 0 else f", {r.rollouts_per_s:.2f} rollouts/s"
     print(f"sweep {args.out}: {r.chunks_skipped + r.chunks_run}/{r.chunks_total} chunks done "
           f"({r.chunks_run} run now{rate}); table in {args.out}/chunks/*.parquet")
+    if r.failed:
+        from safewbc_jax.sweeps.cluster import describe_failures
+
+        print(f"safewbc: {describe_failures(r.failed, args.out)}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -132,7 +182,7 @@ def _cmd_tune(args) -> int:
     try:
         r = tuning.tune(spec, args.out, cfg=cfg, work=work, batch=args.batch, seed=args.seed,
                         quiet=args.quiet, engine=args.engine, workers=args.workers,
-                        title=args.command)
+                        title=args.command, ray=args.ray)
     except KeyboardInterrupt:
         print(f"safewbc: interrupted; the finished generations are kept in {work}, rerun "
               "the same command to resume", file=sys.stderr)
@@ -271,8 +321,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "--out: run only the chunks k with k mod HOSTS = --host-index")
     p.add_argument("--host-index", type=_int_at_least(0), default=0,
                    help="this host's index (0-based, below --hosts)")
-    p.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() "
-                   "and take --hosts / --host-index from jax.process_count() / process_index()")
+    p.add_argument("--distributed", action="store_true", help="take --hosts / --host-index "
+                   "from SLURM's environment (a job array's task count and id, or a job "
+                   "step's SLURM_NTASKS / SLURM_PROCID)")
     _engine_args(p)
     p.set_defaults(func=_cmd_sweep)
 

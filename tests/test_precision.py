@@ -167,6 +167,50 @@ def test_accelerator_benchmark_runs_small_on_the_cpu():
         bench.main(["--batches", "2", "3", "--physics-batches", "5"])
 
 
+@pytest.mark.slow
+def test_gpu_check_runs_small_on_the_cpu(tmp_path):
+    """benchmarks/gpu_check.sh at a smoke size, as a GPU machine runs it: each part's JSON.
+    The closed loop is the arms float64 program at batch 2 that the sweep tests compile
+    (loaded from the shared cache); the linear algebra at two of the step's sizes."""
+    import json
+
+    out = tmp_path / "gpu"
+    proc = subprocess.run(
+        ["bash", str(ROOT / "benchmarks/gpu_check.sh"), str(out), "--physics-batches", "4",
+         "--physics-steps", "5", "--sizes", "20", "54", "--linalg-batch", "4", "--batches",
+         "2", "--scenarios", "arms", "--precisions", "float64", "--duration", "0.05"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=1200)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["platform"] == "cpu" and summary["skipped"] == []
+    assert set(summary["parts_s"]) == {"physics", "linalg", "closed", "precision"}
+    phys = json.loads((out / "physics.json").read_text())["physics"]
+    assert {(r["dtype"], r["batch"]) for r in phys} == {("float32", 4), ("float64", 4)}
+    assert all(r["steps_per_s"] > 0 for r in phys)
+    lin = json.loads((out / "linalg.json").read_text())["linalg"]
+    assert len(lin) == 2 * 2 * 2                    # two ops, two sizes, two dtypes
+    # on the CPU each is one LAPACK call over the batch (XLA's FFI kernels), no loop
+    for r in lin:
+        assert r["form"] == "library call" and r["while_loops"] == 0, r
+        assert any(t.startswith("lapack_") for t in r["custom_calls"]), r
+    closed = json.loads((out / "closed.json").read_text())["closed"]
+    assert len(closed) == 1 and closed[0]["fell"] == 0 and closed[0]["qp_failed"] == 0
+    assert closed[0]["robot_steps_per_s"] > 0 and closed[0]["control_steps"] == 1550
+    assert closed[0]["ratio_to_physics"] is None     # physics not timed at this batch
+    prec = json.loads((out / "precision.json").read_text())["precision"]
+    # XLA:CPU multiplies float32 in float32 at either setting: the same answers, and the
+    # mixed mode's polish lands on float64's KKT point (benchmarks/README.md, precision.py)
+    assert prec["highest"] == prec["default"]
+    for r in prec["highest"].values():
+        assert r["not_solved"] == 0 and r["max_torque_error"] < 1e-12
+    # a part that would start after the budget is skipped, and says so
+    skip = subprocess.run([sys.executable, str(ROOT / "benchmarks/gpu_check.py"),
+                           str(tmp_path / "late"), "--parts", "linalg", "--budget-s", "-1"],
+                          capture_output=True, text=True, timeout=300)
+    assert skip.returncode == 0, skip.stderr[-2000:]
+    assert json.loads((tmp_path / "late" / "summary.json").read_text())["skipped"] == ["linalg"]
+
+
 def test_memory_bytes_writes_nothing_to_the_compilation_cache(monkeypatch, tmp_path):
     """``rollout.memory_bytes`` keeps its AOT executable out of the persistent compilation
     cache (serialising it crashed the suite's process; CHANGELOG, 2026-12-05) and puts the
@@ -180,7 +224,7 @@ def test_memory_bytes_writes_nothing_to_the_compilation_cache(monkeypatch, tmp_p
     def small_program(x):
         return jnp.linalg.cholesky(x @ x.T + jnp.eye(x.shape[0])).sum()
 
-    def small(pl, decimate, n_records, chunk):
+    def small(pl, decimate, n_records, chunk, n_devices=1):
         return jax.jit(small_program)
 
     def written():          # the cache's entries of small_program (named after it)
@@ -219,7 +263,7 @@ def test_run_batch_calls_the_program_memory_bytes_and_export_lower(monkeypatch):
 
     seen = []
 
-    def intercept(pl, decimate, n_records, chunk):
+    def intercept(pl, decimate, n_records, chunk, n_devices=1):
         def call(*args):
             seen.extend(jax.typeof(a) for a in jax.tree_util.tree_leaves(args))
             raise Called

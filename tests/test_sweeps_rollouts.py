@@ -14,6 +14,7 @@ safe set in an mjx sweep is test_user_scenario.py's).
 """
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -69,16 +70,33 @@ def sweep_cmd(spec: Path, out: Path) -> list:
             "--batch", str(BATCH), "--engine", "mjx"]
 
 
+DEVICES = 4   # the multi-device sweep's CPU devices (--xla_force_host_platform_device_count)
+
+# the closed loop that run_batch compiles for the multi-device sweep, its optimised HLO
+# written to argv[1] (a load from the persistent cache once the sweep compiled it)
+HLO_SCRIPT = """
+import sys
+import safewbc_jax
+safewbc_jax.enable_x64()
+safewbc_jax.use_compile_cache(sys.argv[2])
+from safewbc_jax.batch.rollout import BatchConfig, compiled_text
+from safewbc_jax.sweeps.spec import load_spec
+spec = load_spec(sys.argv[3])
+open(sys.argv[1], "w").write(compiled_text(BatchConfig.of(spec.run), int(sys.argv[4])))
+"""
+
+
 @pytest.fixture(scope="module")
 def sweeps(tmp_path_factory):
     """Run the spec three ways: (A) one device, killed with SIGKILL once its first chunk
-    is on disk, then rerun to completion; (B) two devices, in one go, side by side with A."""
+    is on disk, then rerun to completion; (B) ``DEVICES`` devices, in one go, side by side
+    with A, then the optimised HLO of B's closed loop."""
     tmp = tmp_path_factory.mktemp("sweeps")
     spec = tmp / "tiny.toml"
     spec.write_text(SPEC)
-    a, b = tmp / "one_device", tmp / "two_devices"
+    a, b = tmp / "one_device", tmp / "devices"
     log_b = open(tmp / "b.log", "w")
-    proc_b = subprocess.Popen(sweep_cmd(spec, b), env=sweep_env(2), stdout=log_b,
+    proc_b = subprocess.Popen(sweep_cmd(spec, b), env=sweep_env(DEVICES), stdout=log_b,
                               stderr=subprocess.STDOUT, cwd=tmp)
     log_a = open(tmp / "a1.log", "w")
     proc_a = subprocess.Popen(sweep_cmd(spec, a), env=sweep_env(1), stdout=log_a,
@@ -103,7 +121,12 @@ def sweeps(tmp_path_factory):
                        cwd=tmp, timeout=1200)
     assert proc_b.wait(timeout=1800) == 0, (tmp / "b.log").read_text()[-3000:]
     log_b.close()
-    return {"a": a, "b": b, "killed": killed, "resume": r,
+    hlo = tmp / "devices.hlo.txt"
+    h = subprocess.run([sys.executable, "-c", HLO_SCRIPT, str(hlo), cache_dir(), str(spec),
+                        str(BATCH)], env=sweep_env(DEVICES), capture_output=True, text=True,
+                       cwd=tmp, timeout=900)
+    assert h.returncode == 0, h.stderr[-3000:]
+    return {"a": a, "b": b, "killed": killed, "resume": r, "hlo": hlo.read_text(),
             "b_log": (tmp / "b.log").read_text(), "a_log": (tmp / "a1.log").read_text()}
 
 
@@ -141,10 +164,10 @@ def test_killed_sweep_keeps_a_readable_table_and_resumes(sweeps):
 
 
 @pytest.mark.slow
-def test_same_seed_same_table_on_one_and_two_devices(sweeps):
-    """The sweep on two CPU devices (the batch sharded over them, in one go) gives the
+def test_same_seed_same_table_on_one_and_several_devices(sweeps):
+    """The sweep on four CPU devices (the batch split over them, in one go) gives the
     table of the one-device sweep that was killed and resumed."""
-    assert "on 2 devices" in sweeps["b_log"], sweeps["b_log"][-2000:]
+    assert f"on {DEVICES} devices" in sweeps["b_log"], sweeps["b_log"][-2000:]
     assert "on 1 device" in sweeps["a_log"]
     ta = table_mod.read_table(sweeps["a"]).drop_columns(["chunk"])
     tb = table_mod.read_table(sweeps["b"]).drop_columns(["chunk"])
@@ -161,6 +184,26 @@ def test_same_seed_same_table_on_one_and_two_devices(sweeps):
             np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12, err_msg=name)
         else:
             np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+@pytest.mark.slow
+def test_no_collective_inside_a_loop_on_several_devices(sweeps):
+    """The closed loop that the multi-device sweep ran, as XLA compiled it for four CPU
+    devices: each device runs its own loops (a shard_map over the batch), so no
+    all-reduce, all-gather, collective-permute or all-to-all sits in a while loop's
+    condition or body (none at all). Partitioning the one-device program by its input
+    sharding instead put 20 of them in the loops (6 all-reduce, 5 all-gather, 3
+    collective-permute, 6 all-to-all, measured), the interior point's and MJX's trip
+    counts kept in step across the devices."""
+    from hlo_loops import COLLECTIVES, collectives_in_loops
+
+    text = sweeps["hlo"]
+    loops, in_loops, found = collectives_in_loops(text)
+    assert loops >= 20 and in_loops > 100, (loops, in_loops)   # the real closed loop
+    assert found == {}, found
+    assert not any(re.search(r"\s" + op + r"(?:-start)?\(", text) for op in COLLECTIVES)
+    # one rollout per device: the batch of 2 padded to 4 and split
+    assert "entry_computation_layout={(f64[1," in text
 
 
 @pytest.mark.slow
@@ -386,3 +429,90 @@ def test_pool_worker_crash_and_hang_are_recorded_not_stalled(tmp_path):
         assert pool.restarts == 3
     finally:
         pool.close()
+
+
+# --- on a local Ray cluster (sweeps.cluster): the same spec, the same tables
+
+def _ray_tasks(name: str = "run_chunk") -> list:
+    """Pids of the Ray worker processes running a task of the function ``name`` (Ray titles
+    such a process ``ray::NAME`` while the task runs)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                argv0 = (d / "cmdline").read_bytes().split(b"\0")[0]
+            except OSError:
+                continue
+            if argv0.startswith(f"ray::{name}".encode()):
+                pids.append(int(d.name))
+    return pids
+
+
+@pytest.fixture(scope="module")
+def ray_sweeps(tmp_path_factory):
+    """The spec on a Ray cluster that ``--ray`` starts on this machine (2 CPUs): (E) the
+    mujoco engine, one of its workers SIGKILLed while it runs a chunk; (F) the mjx engine."""
+    pytest.importorskip("ray")
+    tmp = tmp_path_factory.mktemp("ray_sweeps")
+    spec = tmp / "tiny.toml"
+    spec.write_text(SPEC)
+    e, f = tmp / "ray_mujoco", tmp / "ray_mjx"
+    log = open(tmp / "e.log", "w")
+    proc = subprocess.Popen(sweep_cmd(spec, e) + ["--engine", "mujoco", "--ray"],
+                            env=sweep_env(1), stdout=log, stderr=subprocess.STDOUT, cwd=tmp)
+    killed, t0 = None, time.time()
+    while proc.poll() is None and killed is None and time.time() - t0 < 600:
+        pids = _ray_tasks()
+        if pids:
+            time.sleep(0.5)                # inside the task: its compile or its rollouts
+            if proc.poll() is None and not table_mod.finished_chunks(e):
+                os.kill(pids[0], signal.SIGKILL)
+                killed = pids[0]
+        time.sleep(0.05)
+    rc = proc.wait(timeout=900)
+    log.close()
+    mjx = subprocess.run(sweep_cmd(spec, f) + ["--ray"], env=sweep_env(1),
+                         capture_output=True, text=True, cwd=tmp, timeout=900)
+    return {"e": e, "f": f, "killed": killed, "rc": rc, "e_log": (tmp / "e.log").read_text(),
+            "mjx": mjx}
+
+
+def _same_table(x, y):
+    tx = table_mod.read_table(x).drop_columns(["chunk"])
+    ty = table_mod.read_table(y).drop_columns(["chunk"])
+    assert tx.column_names == ty.column_names
+    # a chunk's result is a function of its inputs: the same floats, whoever ran it
+    for name in tx.column_names:
+        np.testing.assert_array_equal(tx.column(name).to_numpy(zero_copy_only=False),
+                                      ty.column(name).to_numpy(zero_copy_only=False),
+                                      err_msg=name)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2400)
+def test_ray_sweeps_give_the_one_process_tables_also_after_a_killed_worker(
+        ray_sweeps, sweeps, mujoco_sweeps):
+    r = ray_sweeps
+    assert r["killed"] is not None, r["e_log"][-3000:]        # a worker died mid-chunk
+    assert r["rc"] == 0, r["e_log"][-3000:]
+    assert "on a Ray cluster (1 node, 2 CPUs, one chunk per CPU, mujoco engine)" in r["e_log"]
+    assert table_mod.finished_chunks(r["e"]) == {0, 1}
+    _same_table(r["e"], mujoco_sweeps["d"])          # the pool's table, one worker
+    assert r["mjx"].returncode == 0, r["mjx"].stderr[-3000:]
+    assert "mjx engine" in r["mjx"].stderr
+    _same_table(r["f"], sweeps["a"])                 # the one-process mjx table
+
+
+@pytest.mark.slow
+def test_a_second_host_with_another_batch_is_refused(mujoco_sweeps, capsys):
+    """A host started on the same folder with another --batch (here a finished sweep's,
+    host 1 of 2) refuses with the reason and leaves the first plan as it was."""
+    from safewbc_jax.cli import main
+
+    d = mujoco_sweeps["d"]
+    before = (d / table_mod.MANIFEST).read_bytes()
+    rc = main(["sweep", str(d.parent / "tiny.toml"), "--out", str(d), "--batch", "1",
+               "--hosts", "2", "--host-index", "1", "--engine", "mujoco", "--workers", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "batch = 2, this one has 1 (another --batch)" in err, err
+    assert (d / table_mod.MANIFEST).read_bytes() == before

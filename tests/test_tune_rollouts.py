@@ -12,6 +12,7 @@ test_sweeps_rollouts.py's (the tuner reads only those tables). The params file's
 ``--safe-set`` arguments are test_tune.py's.
 """
 
+import importlib.util
 import json
 import signal
 import subprocess
@@ -71,11 +72,16 @@ def tunes(tmp_path_factory):
     c = tmp / "c" / "tuned.toml"
     mjx = subprocess.run(tune_cmd(spec, c, "--engine", "mjx"), env=env, capture_output=True,
                          text=True, cwd=tmp, timeout=900)
+    d = tmp / "d" / "tuned.toml"
+    ray = (subprocess.run(tune_cmd(spec, d, "--engine", "mjx", "--ray"), env=env,
+                          capture_output=True, text=True, cwd=tmp, timeout=900)
+           if importlib.util.find_spec("ray") else None)
     rd = lambda p: json.loads((p.parent / "tuned_tune" / "tuning.json").read_text())  # noqa: E731
     return {"killed": killed, "resume": resume, "mujoco": mujoco, "mjx": mjx, "tmp": tmp,
             "a": rd(a) if resume.returncode == 0 else None,
             "b": rd(b) if mujoco.returncode == 0 else None,
-            "c": rd(c) if mjx.returncode == 0 else None, "paths": (a, b, c)}
+            "c": rd(c) if mjx.returncode == 0 else None, "paths": (a, b, c), "ray": ray,
+            "d": rd(d) if ray is not None and ray.returncode == 0 else None}
 
 
 @pytest.mark.slow
@@ -136,3 +142,17 @@ def test_mujoco_engine_tunes_the_same_spec(tunes):
     work = t["paths"][1].parent / "tuned_tune"
     widths = {json.loads(m.read_text())["lockstep"] for m in work.glob("*/sweep.json")}
     assert widths == {2}, widths
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3600)
+def test_tuning_on_a_local_ray_cluster_is_the_one_process_tuning(tunes):
+    """``tune --ray`` (a Ray started on this machine, every generation's chunks its tasks)
+    searches, decides and validates exactly as the one-process run of the same engine."""
+    if tunes["ray"] is None:
+        pytest.skip("Ray is not installed (pip install '.[ray]')")
+    assert tunes["ray"].returncode == 0, tunes["ray"].stderr[-3000:]
+    assert "on a Ray cluster (1 node, 2 CPUs" in tunes["ray"].stderr
+    d, c = tunes["d"], tunes["c"]
+    assert d["generations"] == c["generations"] and d["best"] == c["best"]
+    assert d["validation"] == c["validation"] and d["used"] == c["used"] == 8

@@ -452,13 +452,31 @@ def _rollouts(pl: Plant, decimate: int, n_records: int, params, push: Push, pert
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled(pl: Plant, decimate: int, n_records: int, chunk: int | None):
+def _compiled(pl: Plant, decimate: int, n_records: int, chunk: int | None,
+              n_devices: int = 1):
     """jit of the batch's rollouts over (params, push, perturb_v), the batch run ``chunk``
-    rollouts at a time (``chunking.chunked``; None: the whole batch at once)."""
+    rollouts at a time (``chunking.chunked``; None: the whole batch at once).
+
+    On ``n_devices`` > 1 (this process's first ``n_devices`` local devices) the function
+    is a ``shard_map`` over the batch axis: each device runs the rollouts of its share with
+    its own loops (the time loop, the interior point's, MJX's solver's), whose trip counts
+    are its own, and no collective anywhere. Partitioning the one-device program by its
+    input sharding instead gives every loop one trip count for all devices, kept in step
+    by a collective per iteration."""
     one = functools.partial(_rollouts, pl, decimate, n_records)
     run = chunked(lambda batched, *shared: one(*batched, *shared), chunk)
-    return jax.jit(lambda params, push, perturb_v, *shared:
-                   run((params, push, perturb_v), *shared))
+
+    def rollouts(params, push, perturb_v, *shared):
+        return run((params, push, perturb_v), *shared)
+
+    if n_devices > 1:
+        from jax.sharding import Mesh, PartitionSpec
+
+        mesh = Mesh(np.array(jax.local_devices()[:n_devices]), ("batch",))
+        rows, same = PartitionSpec("batch"), PartitionSpec()
+        rollouts = jax.shard_map(rollouts, mesh=mesh, in_specs=(rows,) * 3 + (same,) * 4,
+                                 out_specs=rows, check_vma=False)
+    return jax.jit(rollouts)
 
 
 CPU_CHUNK = 64
@@ -512,6 +530,25 @@ def export(cfg: BatchConfig, batch: int, platforms=("cuda",), chunk="auto"):
     ch = resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
     return jax.export.export(_compiled(pl, 0, 0, ch), platforms=list(platforms))(
         *_arg_shapes(pl, batch))
+
+
+def compiled_text(cfg: BatchConfig, batch: int) -> str:
+    """The optimised HLO text of the closed loop that ``run_batch`` compiles for ``batch``
+    rollouts (no trajectories, the default chunk) on this process's devices: the program
+    each device runs, with its loops and any collective. A compile, or a load from JAX's
+    persistent compilation cache where ``run_batch`` already compiled it."""
+    pl = plant(cfg)
+    batch = _checked_batch(batch)
+    ndev = len(jax.local_devices())
+    padded = -(-batch // ndev) * ndev
+    ch = resolve_chunk("auto", padded, ByPlatform(CPU_CHUNK)) if ndev == 1 else None
+    shapes = _arg_shapes(pl, padded)
+    if ndev > 1:
+        sh = _batch_sharding()
+        shapes = tuple(jax.tree_util.tree_map(
+            lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh), a)
+            for a in shapes[:3]) + shapes[3:]
+    return _compiled(pl, 0, 0, ch, ndev).lower(*shapes).compile().as_text()
 
 
 def memory_bytes(cfg: BatchConfig, batch: int, chunk=None) -> int:
@@ -570,16 +607,18 @@ def _pad(tree, batch: int, padded: int):
         tree)
 
 
-def _shard(tree):
-    """Split the leading (batch) axis over this process's devices. With several hosts
-    (``jax.distributed``) each process runs its own batches on its own devices."""
-    devs = jax.local_devices()
-    if len(devs) == 1:
-        return tree
+def _batch_sharding():
+    """The leading (batch) axis split over this process's devices."""
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-    sh = NamedSharding(Mesh(np.array(devs), ("batch",)), PartitionSpec("batch"))
-    return jax.device_put(tree, sh)
+    return NamedSharding(Mesh(np.array(jax.local_devices()), ("batch",)), PartitionSpec("batch"))
+
+
+def _shard(tree):
+    """Split the leading (batch) axis over this process's devices."""
+    if len(jax.local_devices()) == 1:
+        return tree
+    return jax.device_put(tree, _batch_sharding())
 
 
 def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = None,
@@ -636,7 +675,7 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     t_half = metrics.half_time(n_steps, settle, cfg.control_dt)
     dec = int(cfg.decimate)
     ch = resolve_chunk(chunk, padded, ByPlatform(CPU_CHUNK)) if ndev == 1 else None
-    fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0, ch)
+    fn = _compiled(pl, dec, -(-n_steps // dec) if dec else 0, ch, ndev)
     with jax_qp.blas_threads(1):      # see safewbc_jax/__init__.py
         final, recs = fn(*args, *_run_scalars(n_steps, settle, cfg.speed, t_half))
         final = final._replace(dx=None)

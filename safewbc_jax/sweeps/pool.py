@@ -80,17 +80,16 @@ def _die_with_parent(parent_pid: int):
         os._exit(1)
 
 
-def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
-    """A worker process (module docstring). ``job``: the sweep's run (``SweepSpec.run``,
-    a ``runspec.RunSpec``, the one the mjx engine's ``BatchConfig`` holds), cache_dir and
-    lockstep (the width of ``sim.lockstep.Lockstep``)."""
-    _die_with_parent(parent_pid)
-    if cpu is not None:
-        os.sched_setaffinity(0, {cpu})
-    try:
+class Lanes:
+    """One process's deployment loops of a sweep's run: the scenario's controller compiled
+    once (``Controller.start`` and ``Lockstep.warm_up``), then any number of lockstep
+    groups. ``job``: the sweep's run (``SweepSpec.run``, a ``runspec.RunSpec``, the one the
+    mjx engine's ``BatchConfig`` holds), cache_dir and lockstep (the width of
+    ``sim.lockstep.Lockstep``). Start JAX on the CPU (``safewbc_jax.use_cpu``) first."""
+
+    def __init__(self, job: dict):
         import safewbc_jax
 
-        safewbc_jax.use_cpu()          # a CPU engine: never a GPU backend, whatever is installed
         safewbc_jax.enable_x64()
         if job.get("cache_dir"):
             safewbc_jax.use_compile_cache(job["cache_dir"])
@@ -99,18 +98,78 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
         from safewbc_jax.sim.mujoco_loop import SimRobot
 
         run = job["run"]
-        dt = run.control_dt
-        n_steps, _, _ = run.schedule()
+        self.dt = run.control_dt
+        self.n_steps, _, _ = run.schedule()
         ctl = run.controller()
-        sim = SimRobot(ctl.motors.names, dt)
+        sim = SimRobot(ctl.motors.names, self.dt)
         sim.reset()
         ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), warm_up=False)
-        lock = Lockstep(ctl, sim, job["lockstep"])
-        lock.warm_up()
+        self.lock = Lockstep(ctl, sim, job["lockstep"])
+        self.lock.warm_up()
         gait0 = ctl.state.gait if ctl.walking else None
         template = metrics.table_columns(
-            metrics.finalize(ctl.tally.acc, metrics.plant_init(), False, gait0), -1, dt)
-        conn.send(("ready", n_steps, {k: np.asarray(v).dtype.str for k, v in template.items()}))
+            metrics.finalize(ctl.tally.acc, metrics.plant_init(), False, gait0), -1, self.dt)
+        self.dtypes = {k: np.asarray(v).dtype.str for k, v in template.items()}
+
+    def run(self, tasks: list) -> list:
+        """Roll out one lockstep group: per task ("done", metric columns) or ("failed",
+        reason); an exception of the group fails each of its rollouts, with the reason."""
+        from safewbc_jax import metrics
+
+        try:
+            res = self.lock.run(tasks, self.n_steps)
+            return [("done", metrics.table_columns(r[3], r[2], self.dt)) if r[0] == "done"
+                    else r for r in res]
+        except Exception as e:  # noqa: BLE001 - the group's rollouts fail, with the reason
+            traceback.print_exc()     # to the sweep's stderr: the why of the failure
+            return [("failed", f"{type(e).__name__}: {e}")] * len(tasks)
+
+
+def chunk_tasks(params, push, perturb_v) -> list:
+    """A chunk's rollouts as lockstep tasks: (params, ``Push``, perturbation) each."""
+    import jax
+
+    from safewbc_jax.push import Push
+
+    perturb_v = np.asarray(perturb_v, float)
+    leaves = jax.tree_util.tree_map(np.asarray, params)
+    return [(jax.tree_util.tree_map(lambda a: a[i], leaves),  # noqa: B023 - called at once
+             Push.single(push.force[i], float(push.at[i]), float(push.duration[i])),
+             perturb_v[i]) for i in range(perturb_v.shape[0])]
+
+
+def lockstep_groups(m: int, width: int) -> list:
+    """A chunk of ``m`` rollouts cut into lockstep groups of at most ``width``: a function of
+    the chunk alone (not of the worker count), so a rollout is always computed in the same
+    group, with the same neighbours, whoever runs it."""
+    return [g.tolist() for g in np.array_split(np.arange(m), -(-m // width))]
+
+
+def columns(dtypes: dict, m: int, results: dict, errors: dict) -> dict:
+    """Per-rollout results -> columns (m,); a failed rollout's metrics NaN (floats),
+    -1 (integers), False (flags), with its reason in ``error``."""
+    cols = {}
+    for name, dt in dtypes.items():
+        dt = np.dtype(dt)
+        fill = np.nan if dt.kind == "f" else (False if dt.kind == "b" else -1)
+        cols[name] = np.array([np.asarray(results[i][name]).item() if i in results else fill
+                               for i in range(m)], dtype=dt)
+    cols["error"] = np.array([errors.get(i, "") for i in range(m)], dtype=object)
+    return cols
+
+
+def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
+    """A worker process (module docstring): ``Lanes`` of ``job``, then groups from
+    ``conn`` until it sends None."""
+    _die_with_parent(parent_pid)
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
+    try:
+        import safewbc_jax
+
+        safewbc_jax.use_cpu()          # a CPU engine: never a GPU backend, whatever is installed
+        lanes = Lanes(job)
+        conn.send(("ready", lanes.n_steps, lanes.dtypes))
     except Exception:  # noqa: BLE001
         conn.send(("init-error", traceback.format_exc()))
         return
@@ -123,14 +182,7 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
         if msg is None:
             return
         g, tasks = msg
-        try:
-            res = lock.run(tasks, n_steps)
-            out = [("done", metrics.table_columns(r[3], r[2], dt)) if r[0] == "done" else r
-                   for r in res]
-        except Exception as e:  # noqa: BLE001 - the group's rollouts fail, with the reason
-            traceback.print_exc()     # to the sweep's stderr: the why of the failure
-            out = [("failed", f"{type(e).__name__}: {e}")] * len(tasks)
-        conn.send(("done", g, out))
+        conn.send(("done", g, lanes.run(tasks)))
 
 
 class _Slot:
@@ -247,23 +299,10 @@ class PoolExecutor:
 
     # --- a chunk
     def __call__(self, spec, params, push, perturb_v) -> dict:
-        import jax
-
-        from safewbc_jax.push import Push
-
         self.start()
-        perturb_v = np.asarray(perturb_v, float)
-        m = perturb_v.shape[0]
-        leaves = jax.tree_util.tree_map(np.asarray, params)
-
-        def task(i):
-            p = jax.tree_util.tree_map(lambda a: a[i], leaves)
-            return (p, Push.single(push.force[i], float(push.at[i]), float(push.duration[i])),
-                    perturb_v[i])
-
-        # the chunk's lockstep groups: a function of the chunk alone (not of the worker
-        # count), so a rollout is always computed in the same group
-        groups = [g.tolist() for g in np.array_split(np.arange(m), -(-m // self.lockstep))]
+        tasks = chunk_tasks(params, push, perturb_v)
+        m = len(tasks)
+        groups = lockstep_groups(m, self.lockstep)
         todo = list(range(len(groups)))[::-1]      # popped from the end: in order
         tries = [0] * len(groups)
         results: dict[int, dict] = {}
@@ -276,7 +315,7 @@ class PoolExecutor:
                     g = todo.pop()
                     s.task, s.since = g, time.monotonic()
                     tries[g] += 1
-                    s.conn.send((g, [task(i) for i in groups[g]]))
+                    s.conn.send((g, [tasks[i] for i in groups[g]]))
             busy = [s for s in self.slots if s.task is not None]
             ready = wait([s.conn for s in busy] + [s.proc.sentinel for s in busy], timeout=1.0)
             now = time.monotonic()
@@ -316,19 +355,7 @@ class PoolExecutor:
                 new = self._spawn(s.cpu)
                 self.slots[k] = new
                 self._await_ready(new)
-        return self._columns(m, results, errors)
-
-    def _columns(self, m: int, results: dict, errors: dict) -> dict:
-        """Per-rollout results -> columns (m,); a failed rollout's metrics NaN (floats),
-        -1 (integers), False (flags), with its reason in ``error``."""
-        cols = {}
-        for name, dt in self.dtypes.items():
-            dt = np.dtype(dt)
-            fill = np.nan if dt.kind == "f" else (False if dt.kind == "b" else -1)
-            cols[name] = np.array([np.asarray(results[i][name]).item() if i in results else fill
-                                   for i in range(m)], dtype=dt)
-        cols["error"] = np.array([errors.get(i, "") for i in range(m)], dtype=object)
-        return cols
+        return columns(self.dtypes, m, results, errors)
 
 
 def resolve_engine(engine: str) -> str:

@@ -40,6 +40,7 @@ class SweepResult:
     chunks_skipped: int
     wall_s: float
     rollouts_per_s: float
+    failed: dict = dataclasses.field(default_factory=dict)   # chunk -> why it has no result
 
 
 def real_executor():
@@ -61,9 +62,10 @@ def real_executor():
 def auto_batch(spec: SweepSpec, out: Path, engine: str, quiet=False) -> int:
     """``--batch auto``: rollouts per chunk. A sweep already begun in ``out`` keeps its
     manifest's batch (it resumes); the mujoco engine and a CPU take the spec's
-    ``sweep.batch``; on an accelerator, the most rollouts whose closed loop fits in 90% of
-    the device's memory (``rollout.memory_model``: the compiled program's memory analysis
-    at 256 and 1,024 rollouts, two compiles), at most the sweep's rollouts."""
+    ``sweep.batch``; on accelerators, the most rollouts whose closed loop fits in 90% of
+    one device's memory (``rollout.memory_model``: the compiled program's memory analysis
+    at 256 and 1,024 rollouts, two compiles), times the process's devices (``run_batch``
+    gives each device an equal share and its own loops), at most the sweep's rollouts."""
     import jax
 
     if (Path(out) / table_mod.MANIFEST).exists():
@@ -79,10 +81,12 @@ def auto_batch(spec: SweepSpec, out: Path, engine: str, quiet=False) -> int:
     cfg = BatchConfig.of(spec.run, precision=spec.precision)
     fixed, per = memory_model(cfg)
     limit = (dev.memory_stats() or {}).get("bytes_limit", 0)
-    batch = max(1, min(spec.n_rollouts, largest_batch(fixed, per, limit)))
+    ndev = len(jax.local_devices())
+    batch = max(1, min(spec.n_rollouts, ndev * largest_batch(fixed, per, limit)))
     if not quiet:
         print(f"[sweep] --batch auto: {batch} rollouts per chunk ({per / 1e6:.2f} MB each, "
-              f"{limit / 1e9:.0f} GB on {dev.device_kind})", file=sys.stderr, flush=True)
+              f"{limit / 1e9:.0f} GB on each of {ndev} {dev.device_kind})", file=sys.stderr,
+              flush=True)
     return batch
 
 
@@ -154,7 +158,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
               spec_text: str | None = None, max_chunks: int | None = None,
               check_poles: bool = True, hosts: int = 1, host_index: int = 0,
               quiet: bool = False, desc: str | None = None, stream=None,
-              engine: str = "mjx", workers: int | None = None) -> SweepResult:
+              engine: str = "mjx", workers: int | None = None,
+              ray: str | None = None) -> SweepResult:
     """Run (or resume) the sweep into ``out``. ``executor(spec, params, push, perturb_v)``
     (a batch: ControllerParams, ``push.Push`` and perturbations with a leading rollout axis)
     returns the metrics dict of the batch (default: the real ``run_batch``).
@@ -168,15 +173,31 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     ``engine``: "mjx" (the batched MJX closed loop, ``batch.rollout``) or "mujoco" (a pool
     of ``workers`` deployment loops, one per CPU, ``sweeps.pool``; None: one per CPU this
     process may use); "auto" is resolved by ``pool.resolve_engine``. The engine is in the
-    manifest: a table is resumed only with the engine that began it."""
+    manifest: a table is resumed only with the engine that began it.
+    ``ray``: run every pending chunk as a task on the Ray cluster at that address
+    (``cluster.LOCAL``: one started on this machine; ``sweeps.cluster``); a chunk that has
+    no result after its retries is in ``SweepResult.failed``, with the reason, and the
+    others are written."""
     from safewbc_jax.sweeps import pool as pool_mod
 
     if not (hosts >= 1 and 0 <= host_index < hosts):
         raise ValueError(f"host index {host_index} of {hosts} hosts: expected 0 <= index < hosts")
+    if ray is not None:
+        from safewbc_jax.sweeps import cluster
+
+        if hosts > 1:
+            raise ValueError(f"--ray with --hosts {hosts}: Ray schedules every chunk of the "
+                             "sweep itself; --hosts is for job arrays without Ray")
+        if workers is not None:
+            raise ValueError(f"--ray with --workers {workers}: Ray runs one chunk per CPU "
+                             "of the cluster; --workers is the local pool's")
+        cluster.connect(ray, quiet)
+        engine = cluster.resolve_engine(engine)
     out = Path(out)
     seed = spec.seed if seed is None else int(seed)
     if batch == "auto":
-        batch = auto_batch(spec, out, pool_mod.resolve_engine(engine), quiet or progress)
+        batch = (cluster.auto_batch(spec, out, engine) if ray is not None else
+                 auto_batch(spec, out, pool_mod.resolve_engine(engine), quiet or progress))
     batch = spec.batch if batch is None else int(batch)
     if batch < 1:
         raise ValueError(f"--batch must be >= 1, got {batch}")
@@ -184,7 +205,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         raise ValueError(f"--seed must be >= 0, got {seed}")
     asked = engine
     engine = pool_mod.resolve_engine(engine)
-    if engine == "mujoco":
+    if engine == "mujoco" and ray is None:
         workers = pool_mod.check_workers(workers)
         if spec.precision != "float64":
             raise ValueError(f"sweep.precision = {spec.precision!r} is the mjx engine's "
@@ -205,8 +226,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 "objective": list(spec.tune.get("objective", [])),
                 "objective_weights": dict(spec.tune.get("weights", {})),
                 "safe_sets": list(spec.safe_sets), "engine": engine}
+    width = getattr(executor, "lockstep", None) or pool_mod.lockstep_width(batch)
     if engine == "mujoco":      # rollouts side by side per worker: rounding depends on it
-        width = getattr(executor, "lockstep", None) or pool_mod.lockstep_width(batch)
         manifest["lockstep"] = width
     base, std, settings = preflight(spec, seed, check_poles=check_poles)
     table_mod.open_manifest(out, manifest, spec_text)
@@ -227,7 +248,9 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         return SweepResult(out, n, len(chunks), 0, len(done), 0.0, float("nan"))
     if max_chunks is not None:
         todo = todo[:max_chunks]
-    own = executor is None and engine == "mujoco"
+    own = executor is None and engine == "mujoco" and ray is None
+    if executor is None and ray is not None:
+        executor = cluster.RayExecutor(spec, engine, lockstep=width, address=ray, quiet=quiet)
     execute = (executor or (pool_mod.PoolExecutor(spec, workers, lockstep=width) if own
                             else real_executor()))
     pads = getattr(execute, "pads", True)
@@ -240,29 +263,44 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     key = (None if executor is not None or engine != "mjx" else
            (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt, batch,
             spec.safe_sets))
+    where = (execute.describe() if hasattr(execute, "describe") else
+             f"on {len(devs)} device{'s' if len(devs) > 1 else ''} ({devs[0].platform})"
+             if engine == "mjx" else f"on {workers} MuJoCo worker{'s' if workers > 1 else ''}")
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
-        f"in {len(chunks)} chunk{'s' if len(chunks) > 1 else ''} of {batch} "
-        + (f"on {len(devs)} device{'s' if len(devs) > 1 else ''} ({devs[0].platform})"
-           if engine == "mjx" else f"on {workers} MuJoCo worker{'s' if workers > 1 else ''}")
-        + ("" if key in _COMPILED else
-                                   "; the first chunk includes compilation"))
+        f"in {len(chunks)} chunk{'s' if len(chunks) > 1 else ''} of {batch} {where}"
+        + ("" if key in _COMPILED else "; the first chunk includes compilation"))
     # the bar: this process's rollouts, after those already in the table
     done_n = sum(chunks[j][1] - chunks[j][0] for j in done)
     bar = Progress(desc or "[sweep]", unit="rollouts", initial=done_n,
                    total=done_n + sum(chunks[j][1] - chunks[j][0] for j in todo),
                    phase="rolling out" if key in _COMPILED else "compiling",
                    quiet=quiet or progress is not None, stream=stream)
-    try:
-        for c, k in enumerate(todo):
+    pending: dict = {}          # chunk -> its per-rollout input columns, until written
+    failed: dict = {}
+    seen: set = set()           # chunks of this call with a result or a failure
+
+    def jobs():
+        for k in todo:
             start, stop = chunks[k]
-            rollouts = np.arange(start, stop)
-            params, push, dv, cols = chunk_inputs(spec, base, settings, rollouts, seed, std)
+            params, push, dv, pending[k] = chunk_inputs(spec, base, settings,
+                                                        np.arange(start, stop), seed, std)
+            if stop - start < batch and pads:
+                params, push, dv = jax.tree_util.tree_map(lambda x: _pad(x, batch),
+                                                          (params, push, dv))
+            yield k, params, push, dv
+
+    results = (execute.map_chunks(spec, jobs()) if hasattr(execute, "map_chunks") else
+               ((k, execute(spec, params, push, dv), None) for k, params, push, dv in jobs()))
+    try:
+        for k, metrics, why in results:
+            seen.add(k)
+            start, stop = chunks[k]
             m = stop - start
-            if m < batch and pads:
-                params = jax.tree_util.tree_map(lambda x: _pad(x, batch), params)
-                push = jax.tree_util.tree_map(lambda x: _pad(x, batch), push)
-                dv = _pad(dv, batch)
-            metrics = execute(spec, params, push, dv)
+            cols = pending.pop(k)
+            if why is not None:
+                failed[k] = why
+                say(f"[sweep] chunk {k} has no result: {why}")
+                continue
             if key is not None:
                 _COMPILED.add(key)
             rows = batch if pads else m
@@ -290,7 +328,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
             # after the first chunk (which compiles), estimate from the later ones only
             steady = chunk_times[1:] or chunk_times
             rate = sum(x for x, _ in steady) / max(sum(t for _, t in steady), 1e-9)
-            left = sum(chunks[j][1] - chunks[j][0] for j in todo[c + 1:])   # of this process
+            left = sum(chunks[j][1] - chunks[j][0] for j in todo if j not in seen)  # this process's
             total_done = sum(chunks[j][1] - chunks[j][0] for j in table_mod.finished_chunks(out))
             say(f"[sweep] {total_done}/{n} rollouts  {rate:.3g} rollouts/s  "
                 f"ETA {_fmt_s(left / rate if rate > 0 else float('inf'))}  "
@@ -301,4 +339,5 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         if own:
             execute.close()
     el = time.perf_counter() - t0
-    return SweepResult(out, n, len(chunks), len(todo), len(done), el, ran / el if el > 0 else float("nan"))
+    return SweepResult(out, n, len(chunks), len(todo) - len(failed), len(done), el,
+                       ran / el if el > 0 else float("nan"), failed)

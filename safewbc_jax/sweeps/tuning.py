@@ -356,6 +356,7 @@ class _Run:
     def roll(self, rows, folder: Path, seed: int, desc: str, **spec_changes) -> dict:
         """Roll ``rows`` (tuned values + push values) out as a sweep into ``folder``;
         its columns."""
+        from safewbc_jax.sweeps import pool as pool_mod
         from safewbc_jax.sweeps.run import run_sweep
         from safewbc_jax.sweeps.table import read_columns
 
@@ -364,9 +365,14 @@ class _Run:
         kw = dict(self.sweep_kw)
         if kw["batch"] is None and kw["engine"] == "mujoco":
             # one chunk: its lockstep groups spread over every worker (a chunk of 16 would
-            # be one group, on one worker); the mjx engine keeps one compiled batch size
-            kw["batch"] = sub.n_rollouts
-        run_sweep(sub, folder, seed=seed, check_poles=True, desc=desc, **kw)
+            # be one group, on one worker); on Ray, chunks of one group each, a task per
+            # CPU. The mjx engine keeps one compiled batch size
+            kw["batch"] = pool_mod.LOCKSTEP if kw.get("ray") else sub.n_rollouts
+        r = run_sweep(sub, folder, seed=seed, check_poles=True, desc=desc, **kw)
+        if r.failed:            # a candidate's objective needs every one of its rollouts
+            from safewbc_jax.sweeps.cluster import describe_failures
+
+            raise RuntimeError(f"{folder}: " + describe_failures(r.failed, folder))
         return read_columns(folder)
 
 
@@ -379,13 +385,14 @@ def default_work(out, title: str = "tune") -> Path:
 
 def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batch=None,
          seed=None, executor=None, progress=None, quiet=False, engine="mjx", workers=None,
-         title="tune") -> TuneResult:
+         title="tune", ray: str | None = None) -> TuneResult:
     """Run (or resume) a tuning run of ``spec`` and write the params TOML ``out``.
     ``cfg``: :func:`config` of the spec when None. ``work``: the generations' folder
     (default OUT without .toml + "_tune"). ``batch``, ``executor``, ``engine``, ``workers``,
     ``progress``, ``quiet``: each generation's sweep's (``run_sweep``), with a tqdm bar per
     generation titled with the best objective so far. The mujoco engine's workers start
-    once and serve every generation and the validation."""
+    once and serve every generation and the validation. ``ray``: every generation's chunks
+    are tasks on that Ray cluster (``run_sweep``'s ``ray``)."""
     from safewbc_jax.sweeps import pool as pool_mod
 
     out = Path(out)
@@ -415,13 +422,18 @@ def tune(spec: SweepSpec, out, *, cfg: TuneConfig | None = None, work=None, batc
                             "give another --work (or remove it)")
     work.mkdir(parents=True, exist_ok=True)
     own_pool = None
-    if executor is None and pool_mod.resolve_engine(engine) == "mujoco":
+    if ray is not None:
+        from safewbc_jax.sweeps import cluster
+
+        cluster.connect(ray, quiet)
+        engine = cluster.resolve_engine(engine)
+    elif executor is None and pool_mod.resolve_engine(engine) == "mujoco":
         engine = "mujoco"       # one pool for every generation: its workers compile once
         executor = own_pool = pool_mod.PoolExecutor(
             spec, workers, lockstep=pool_mod.lockstep_width(batch))
     run = _Run(spec, cfg, params, base, etas, dist_axes, dist_rows, n_draws, work, seed,
                dict(batch=batch, executor=executor, progress=progress, quiet=quiet,
-                    engine=engine, workers=workers), title, say, _units(spec))
+                    engine=engine, workers=workers, ray=ray), title, say, _units(spec))
     try:
         head["baseline"] = dataclasses.asdict(_baseline(run))
         gens, best, used, stop = _search(run, _make_search(cfg, params, base, seed), state,
