@@ -424,7 +424,7 @@ def test_auto_batch_on_the_cpu_and_on_resume(tmp_path):
     import json
 
     from safewbc_jax.cli import _batch_arg
-    from safewbc_jax.sweeps.run import auto_batch
+    from safewbc_jax.sweeps.sizing import auto_batch
     from safewbc_jax.sweeps.table import MANIFEST
 
     spec = spec_from(tmp_path, GOOD)

@@ -149,7 +149,7 @@ def run_chunk(job: dict, params, push, perturb_v) -> dict:
 
 
 def _auto_batch(spec, out: str) -> int:
-    from safewbc_jax.sweeps.run import auto_batch
+    from safewbc_jax.sweeps.sizing import auto_batch
 
     return auto_batch(spec, out, "mjx", quiet=True)
 
@@ -158,17 +158,13 @@ def _auto_batch(spec, out: str) -> int:
 
 def auto_batch(spec, out, engine: str) -> int:
     """``--batch auto`` on a cluster: a sweep already begun keeps its batch; the mjx engine
-    on a cluster with GPUs sizes it on one of them (``run.auto_batch`` in a one-GPU task);
-    otherwise the spec's ``sweep.batch``."""
-    from pathlib import Path
+    on a cluster with GPUs sizes it on one of them (``sizing.auto_batch`` in a one-GPU
+    task); otherwise the spec's ``sweep.batch``."""
+    from safewbc_jax.sweeps.sizing import resumed_batch
 
-    from safewbc_jax.sweeps import table
-
-    if (Path(out) / table.MANIFEST).exists():
-        try:
-            return int(table.read_manifest(out)["batch"])
-        except (KeyError, ValueError, table.TableError):
-            pass
+    resumed = resumed_batch(out)
+    if resumed is not None:
+        return resumed
     if engine != "mjx" or gpus() == 0:
         return spec.batch
     ray = _ray()

@@ -21,7 +21,7 @@ import numpy as np
 
 from safewbc_jax.progress import Progress
 from safewbc_jax.push import Push
-from safewbc_jax.sweeps import inputs
+from safewbc_jax.sweeps import inputs, sizing
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.spec import SweepSpec
 
@@ -57,37 +57,6 @@ def real_executor():
         return metrics
 
     return execute
-
-
-def auto_batch(spec: SweepSpec, out: Path, engine: str, quiet=False) -> int:
-    """``--batch auto``: rollouts per chunk. A sweep already begun in ``out`` keeps its
-    manifest's batch (it resumes); the mujoco engine and a CPU take the spec's
-    ``sweep.batch``; on accelerators, the most rollouts whose closed loop fits in 90% of
-    one device's memory (``rollout.memory_model``: the compiled program's memory analysis
-    at 256 and 1,024 rollouts, two compiles), times the process's devices (``run_batch``
-    gives each device an equal share and its own loops), at most the sweep's rollouts."""
-    import jax
-
-    if (Path(out) / table_mod.MANIFEST).exists():
-        try:
-            return int(table_mod.read_manifest(out)["batch"])
-        except (KeyError, ValueError, table_mod.TableError):
-            pass
-    dev = jax.local_devices()[0]
-    if engine == "mujoco" or dev.platform == "cpu":
-        return spec.batch
-    from safewbc_jax.batch.rollout import BatchConfig, largest_batch, memory_model
-
-    cfg = BatchConfig.of(spec.run, precision=spec.precision)
-    fixed, per = memory_model(cfg)
-    limit = (dev.memory_stats() or {}).get("bytes_limit", 0)
-    ndev = len(jax.local_devices())
-    batch = max(1, min(spec.n_rollouts, ndev * largest_batch(fixed, per, limit)))
-    if not quiet:
-        print(f"[sweep] --batch auto: {batch} rollouts per chunk ({per / 1e6:.2f} MB each, "
-              f"{limit / 1e9:.0f} GB on each of {ndev} {dev.device_kind})", file=sys.stderr,
-              flush=True)
-    return batch
 
 
 def sim_model():
@@ -197,7 +166,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     seed = spec.seed if seed is None else int(seed)
     if batch == "auto":
         batch = (cluster.auto_batch(spec, out, engine) if ray is not None else
-                 auto_batch(spec, out, pool_mod.resolve_engine(engine), quiet or progress))
+                 sizing.auto_batch(spec, out, pool_mod.resolve_engine(engine),
+                                   quiet or progress))
     batch = spec.batch if batch is None else int(batch)
     if batch < 1:
         raise ValueError(f"--batch must be >= 1, got {batch}")
