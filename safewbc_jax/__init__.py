@@ -62,7 +62,7 @@ def require_x64(what: str) -> None:
     """RuntimeError unless JAX's 64-bit floats are on, naming ``what`` needs them."""
     import jax
 
-    if not jax.config.jax_enable_x64:
+    if not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
         raise RuntimeError(f"{what} needs JAX's 64-bit floats: call safewbc_jax.enable_x64() "
                            "first (or set JAX_ENABLE_X64=1)")
 

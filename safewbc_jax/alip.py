@@ -326,8 +326,8 @@ class SwingReference(NamedTuple):
 
 
 def swing_foot_reference(tau, T, p_sw0, u, height=SWING_HEIGHT, rate=SWING_RATE, z0=0.0,
-                         exact_landing=False, vertical="sine", land_speed=LAND_SPEED, land_depth=LAND_DEPTH,
-                         horizontal="paper", reach=1.0):
+                         exact_landing=False, vertical="sine", land_speed=LAND_SPEED,
+                         land_depth=LAND_DEPTH, horizontal="paper", reach=1.0):
     """Swing-foot position reference and its first two time derivatives (analytic).
 
     Horizontal (the paper's formula, eq. 37): ``p_xy(tau) = p_sw0 + s(tau) (u - p_sw0)`` with the
@@ -347,9 +347,9 @@ def swing_foot_reference(tau, T, p_sw0, u, height=SWING_HEIGHT, rate=SWING_RATE,
     Vertical, ``vertical="sine"`` (static): ``z(tau) = z0 + height sin(pi tau / T)`` for
     tau in [0, T] and z0 outside. This differs from the printed
     ``0.08 sin(2 pi tau / T)`` of eq. 37, which returns to 0 at T/2 and is negative (foot
-    below the ground) over the second half of the step; with ``pi tau / T`` the foot lifts off at tau = 0, peaks at ``height``
-    (0.08 m) at mid-step and touches down at tau = T (with vertical velocity
-    ``-height pi / T``, 0.72 m/s for the defaults: a hard landing).
+    below the ground) over the second half of the step; with ``pi tau / T`` the foot lifts
+    off at tau = 0, peaks at ``height`` (0.08 m) at mid-step and touches down at tau = T
+    (with vertical velocity ``-height pi / T``, 0.72 m/s for the defaults: a hard landing).
 
     ``vertical="land"``: with sigma = tau / T and d = v_land T,
     ``z = z0 + height 16 sigma^2 (1 - sigma)^2 + d sigma^2 (1 - sigma)`` on [0, T]:
@@ -389,7 +389,8 @@ def swing_foot_reference(tau, T, p_sw0, u, height=SWING_HEIGHT, rate=SWING_RATE,
         inside = (tau >= 0.0) & (tau <= T)
         dd = land_speed * T
         zi = height * 16.0 * sg**2 * (1.0 - sg) ** 2 + dd * sg**2 * (1.0 - sg)
-        dzi = (height * 32.0 * sg * (1.0 - sg) * (1.0 - 2.0 * sg) + dd * (2.0 * sg - 3.0 * sg**2)) / T
+        dzi = (height * 32.0 * sg * (1.0 - sg) * (1.0 - 2.0 * sg)
+               + dd * (2.0 * sg - 3.0 * sg**2)) / T
         ddzi = (height * 32.0 * (1.0 - 6.0 * sg + 6.0 * sg**2) + dd * (2.0 - 6.0 * sg)) / T**2
         z_after = -land_speed * (tau - T)
         below = z_after > -land_depth  # still descending

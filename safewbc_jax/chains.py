@@ -90,5 +90,3 @@ def chain_jacobian(model: RobotModel, q, kin=None):
     for kind, i in row_order(model):
         rows.append(jrod[i] if kind == "rod" else jnp.asarray(np.eye(model.nv)[i], q.dtype))
     return jnp.stack(rows)
-
-

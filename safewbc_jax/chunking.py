@@ -75,9 +75,10 @@ def resolve_chunk(chunk, batch: int, default):
 def chunked(impl, chunk: int | None):
     """``impl(batched, *shared)`` (a function of a pytree with a leading batch axis on every
     leaf, and of arguments shared by the whole batch) run on the batch in chunks of at most
-    ``chunk`` instances; None: ``impl`` itself; a ``ByPlatform``: by the platform lowered for. To be traced inside ``jit``. A batch of at
-    most ``chunk`` is one chunk; callers that want it to be ``impl`` itself (the same
-    compiled function as no chunking) pass ``resolve_chunk``'s answer."""
+    ``chunk`` instances; None: ``impl`` itself; a ``ByPlatform``: by the platform lowered
+    for. To be traced inside ``jit``. A batch of at most ``chunk`` is one chunk; callers
+    that want it to be ``impl`` itself (the same compiled function as no chunking) pass
+    ``resolve_chunk``'s answer."""
     if chunk is None:
         return impl
     if isinstance(chunk, ByPlatform):

@@ -101,7 +101,8 @@ def hosts_from_env(environ) -> tuple[int, int]:
     if "SLURM_ARRAY_TASK_ID" in environ and "SLURM_ARRAY_TASK_COUNT" in environ:
         step = number("SLURM_ARRAY_TASK_STEP") if "SLURM_ARRAY_TASK_STEP" in environ else 1
         low = number("SLURM_ARRAY_TASK_MIN") if "SLURM_ARRAY_TASK_MIN" in environ else 0
-        hosts, index = number("SLURM_ARRAY_TASK_COUNT"), (number("SLURM_ARRAY_TASK_ID") - low) // max(step, 1)
+        hosts = number("SLURM_ARRAY_TASK_COUNT")
+        index = (number("SLURM_ARRAY_TASK_ID") - low) // max(step, 1)
     elif "SLURM_NTASKS" in environ and "SLURM_PROCID" in environ:
         hosts, index = number("SLURM_NTASKS"), number("SLURM_PROCID")
     else:
@@ -198,7 +199,8 @@ def _scenario_arg(value: str) -> str:
 
     if value in scenarios.names() or userfile.is_ref(value):
         return value
-    raise argparse.ArgumentTypeError(f"{value!r}: choose from {', '.join(sorted(scenarios.names()))}"
+    raise argparse.ArgumentTypeError(f"{value!r}: choose from "
+                                     f"{', '.join(sorted(scenarios.names()))}"
                                      ", or FILE.py:NAME (a Scenario of your own)")
 
 
@@ -264,7 +266,8 @@ def build_parser() -> argparse.ArgumentParser:
         "Safe whole-body task-space control of the humanoid Digit: an inverse-dynamics QP "
         "with acceleration-based exponential control barrier functions."))
     sub = ap.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("model-info", help="sizes, mass, loop residual and foot heights of the models")
+    p = sub.add_parser("model-info", help="sizes, mass, loop residual and foot heights of the "
+                       "models")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_model_info)
 

@@ -7,11 +7,12 @@ and a real robot (``deploy.Controller``).
 
 ``prepare`` and ``conclude`` are pure JAX functions of typed pytrees; the QP between them is
 the seam to the solvers, and their answer (``solvers.result.SolveResult``, the same type
-from either solver) comes back to ``conclude``. ``prepare`` carries the ControllerState (gait, clock, last good
-measurement), ``conclude`` the Tally (last good torque, metrics): the next ``prepare``
-does not wait for ``conclude``. The batched path composes the three in one traced step
-(``step_jax``); the single-robot path jits ``prepare`` and ``conclude`` apart, runs PIQP
-between them on the host and ``conclude`` after the command is out. Nothing in either loop decides anything about control:
+from either solver) comes back to ``conclude``. ``prepare`` carries the ControllerState
+(gait, clock, last good measurement), ``conclude`` the Tally (last good torque, metrics):
+the next ``prepare`` does not wait for ``conclude``. The batched path composes the three in
+one traced step (``step_jax``); the single-robot path jits ``prepare`` and ``conclude``
+apart, runs PIQP between them on the host and ``conclude`` after the command is out.
+Nothing in either loop decides anything about control:
 
 * the measurement check (``state_ok``): a refused measurement holds the last good torque,
   does not advance the gait or the clock, and is counted (``bad_measurements``);
@@ -32,7 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,7 +67,7 @@ class Measurement:
 
     q: np.ndarray
     v: np.ndarray
-    t: float
+    t: Any                  # s: a float, or a JAX scalar in the batched path
     sole_force: np.ndarray | None = None
 
 
@@ -133,7 +134,8 @@ class Context:
     scenario: scenario_mod.Scenario
     control_dt: float
     motors: MotorArrays
-    qp_settings: object = None      # jax_qp.Settings of step_jax's solve (None: float64's)
+    qp_settings: Any = None      # jax_qp.Settings of step_jax's solve (None: float64's)
+    weight: float = dataclasses.field(init=False)     # N, from the model (__post_init__)
 
     @property
     def walking(self) -> bool:
@@ -256,7 +258,7 @@ def prepare(ctx: Context, params, start, run: RunValues, state: ControllerState,
     """Measurement -> QP (module docstring). Returns (state with the gait advanced,
     Prepared, the QP).
     A refused measurement builds the QP at the last good state (its result is not used)."""
-    model, sc = ctx.model, dataclasses.replace(ctx.scenario, settle=run.settle)
+    model, sc = ctx.model, dataclasses.replace(ctx.scenario, settle=run.settle)  # type: ignore[arg-type]
     q_in, v_in = jnp.asarray(meas.q), jnp.asarray(meas.v)
     dtype = q_in.dtype
     force = jnp.zeros(2, dtype) if meas.sole_force is None else jnp.asarray(meas.sole_force, dtype)
@@ -397,7 +399,7 @@ class StartCheck:
     def __init__(self, model, scenario, q, jit: bool = True):
         self.model, self.scenario, self.q = model, scenario, jnp.asarray(q)
         self._jit = bool(jit)
-        self._eta = {}
+        self._eta: dict = {}
 
     def etas(self, name: str, v, thresholds) -> np.ndarray:
         """(N, r) eta(x_0) of barrier ``name`` at velocities v (N, nv) with thresholds (N,)."""

@@ -128,7 +128,8 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
         y = ya - yd
         ydot = jy @ v - yd_dot
         ystar.append(-params.kp[o.name] * y - params.kd[o.name] * ydot + yd_ddot)
-        jac.append(jy), drift.append(jdv)
+        jac.append(jy)
+        drift.append(jdv)
         w.append(params.weight[o.name] * mask.get(o.name, 1.0))
         err[o.name] = (ya, yd)
     task_p, task_q = qp.task_cost(jac, drift, ystar, w, model.nv)
@@ -146,7 +147,7 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
     rows, bs, hvals = [], [], {}
     for b in scenario.barriers:
         if b.terms is not None:     # closed form from this step's kinematics
-            r = barriers.aecbf_row_from_terms(
+            r = barriers.aecbf_row_from_terms(  # type: ignore[call-arg]  # h, J_h, J_h_dot v
                 *b.terms(model, terms.kin, terms.motion, params.threshold[b.name], domain),
                 v, params.poles[b.name])
         else:                       # automatic differentiation of h

@@ -14,6 +14,9 @@ torque (zeros before the first good step), names the reason, the gait does not a
 and it is counted. ``MotorMap`` maps joint torques to motor torques from the controller
 model and the published figures (``models/digit_v3_parameters.json``), not from a
 simulator.
+
+Size: the Controller still carries the lockstep lanes' API (``lane``, ``admit_lanes``,
+``finish_lanes``); issue 51 moves it into a compiled step of its own.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -177,12 +181,12 @@ class HostRecord:
     other residuals of the reduced QP PIQP solved; None where the measurement was
     refused), the wall times of the QP's preparation and of the solve (us)."""
 
-    step: object
+    step: Any
     q: np.ndarray
     v: np.ndarray
-    domain: object          # walking.Domain, or None
+    domain: Any          # walking.Domain, or None
     x: np.ndarray | None
-    solve: object
+    solve: Any
     t_qp: float
     t_solve: float
 
@@ -240,7 +244,7 @@ class Controller:
         self.run_values = control_step.RunValues(jnp.asarray(settle), jnp.asarray(float(speed)),
                                                  jnp.asarray(t_half))
         self.start_data = self.compile_s = self._start_qv = None
-        self._start_checks = {}      # start's and restart's Theorem-1 checks, jitted (lanes share it)
+        self._start_checks = {}      # start's and restart's Theorem-1 checks (lanes share it)
         self._prepare = self._conclude = None
 
     def start(self, q, v, warm_up: bool = True) -> float:

@@ -42,7 +42,7 @@ def count(fn, *args) -> dict:
     import jax
 
     jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
-    return count_text(jitted.lower(*args).compile().as_text())
+    return count_text(jitted.lower(*args).compile().as_text() or "")
 
 
 def cost(fn, *args) -> dict:
@@ -55,9 +55,9 @@ def cost(fn, *args) -> dict:
 
     jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
     compiled = jitted.lower(*args).compile()
-    analysis = compiled.cost_analysis()
+    analysis = compiled.cost_analysis() or {}
     if isinstance(analysis, (list, tuple)):     # older jaxlibs: one dict per program
         analysis = analysis[0]
     return {"flops": float(analysis.get("flops", 0.0)),
             "bytes": float(analysis.get("bytes accessed", 0.0)),
-            "kernels": count_text(compiled.as_text())["total"]}
+            "kernels": count_text(compiled.as_text() or "")["total"]}

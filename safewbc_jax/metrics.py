@@ -17,7 +17,7 @@ names joined by "."; arrays with a leading batch axis come out as arrays), and
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -29,24 +29,24 @@ NO_HALF = -1.0          # t_half of a run whose forward speed is not measured
 class ControlAcc(NamedTuple):
     """Running controller-side metrics (one robot; a leading batch axis in the batch)."""
 
-    steps: object          # accepted measurements
-    bad: object            # refused measurements
-    n_none: object
-    n_relaxed: object
-    n_failed: object
+    steps: Any          # accepted measurements
+    bad: Any            # refused measurements
+    n_none: Any
+    n_relaxed: Any
+    n_failed: Any
     track_sq: dict         # output -> (dim,) sum of squared errors of tracked components
     track_n: dict          # output -> (dim,) steps each component was tracked
     track_rows: dict       # output -> steps with any component tracked
     y_max: dict            # output -> (dim,) max over the motion of y and of y^d
     yd_max: dict
     h_min: dict            # barrier or monitor -> min h
-    zmp_min: object
-    torque_max: object
-    eq_max: object
-    com_x_half: object     # walking: CoM x where the second half of the motion begins,
-    t_half_seen: object    # the time it was taken at (NaN: not yet), the last CoM x and
-    com_x_end: object      # its time
-    t_end: object
+    zmp_min: Any
+    torque_max: Any
+    eq_max: Any
+    com_x_half: Any     # walking: CoM x where the second half of the motion begins,
+    t_half_seen: Any    # the time it was taken at (NaN: not yet), the last CoM x and
+    com_x_end: Any      # its time
+    t_end: Any
 
 
 def control_init(scenario, xp=np, dtype=np.float64) -> ControlAcc:
@@ -135,12 +135,12 @@ def half_time(n_steps: int, settle: float, dt: float) -> float:
 class PlantAcc(NamedTuple):
     """Running simulator-side metrics."""
 
-    slip_max: object
-    loop_max: object
-    legs_prev: object
-    leg_collisions: object
-    leg_contact_steps: object
-    clearance_min: object
+    slip_max: Any
+    loop_max: Any
+    legs_prev: Any
+    leg_collisions: Any
+    leg_contact_steps: Any
+    clearance_min: Any
 
 
 def plant_init(xp=np, dtype=np.float64) -> PlantAcc:
@@ -238,7 +238,7 @@ def table_columns(flat: dict, fell_step, control_dt: float) -> dict:
 
 def nest(flat: dict) -> dict:
     """Flat columns of one run -> the nested dict of ``metrics.json`` (Python scalars)."""
-    out = {}
+    out: dict[str, Any] = {}
     for key, val in flat.items():
         val = np.asarray(val)
         val = bool(val) if val.dtype == bool else (int(val) if val.dtype.kind in "iu"

@@ -150,8 +150,8 @@ def _geoms_xml(params: dict, body: dict, sim: bool, ind: str) -> list[str]:
         lines.append(f'{ind}<geom name="{name}-collision" class="leg" type="capsule" size="0.03" '
                      f'fromto="{_f(a)} {_f(b)}" contype="{side}" conaffinity="{other}"/>')
         lines.append(f'{ind}<geom name="{name.rsplit("-", 2)[0]}-sole" class="sole" type="box" '
-                     f'size="{_f(box["size"])}" pos="{_f(box["pos"])}" euler="{_f(box["euler_deg"])}" '
-                     f'contype="{_FLOOR}" conaffinity="0"/>')
+                     f'size="{_f(box["size"])}" pos="{_f(box["pos"])}" '
+                     f'euler="{_f(box["euler_deg"])}" contype="{_FLOOR}" conaffinity="0"/>')
     return lines
 
 
@@ -217,7 +217,7 @@ def _body_xml(params: dict, body: dict, children: dict, sim: bool, depth: int,
 def model_xml(params: dict, sim: bool, keyframe: dict | None = None,
               rod_tips: dict | None = None) -> str:
     """MJCF text of the simulation model (``sim=True``) or the controller's tree."""
-    children: dict[str, list] = {}
+    children: dict[str | None, list] = {}
     for b in params["bodies"]:
         children.setdefault(b["parent"], []).append(b)
     root = children[None][0]
@@ -247,8 +247,9 @@ def model_xml(params: dict, sim: bool, keyframe: dict | None = None,
     if sim:
         out.append("  <equality>")
         for lc in params["loop_closures"]:
-            out.append(f'    <connect name="{lc["name"]}" body1="{lc["body1"]}" body2="{lc["body2"]}" '
-                       f'anchor="{_f(lc["anchor_in_body1"])}" solref="{_f(LOOP_SOLREF)}"/>')
+            out.append(f'    <connect name="{lc["name"]}" body1="{lc["body1"]}" '
+                       f'body2="{lc["body2"]}" anchor="{_f(lc["anchor_in_body1"])}" '
+                       f'solref="{_f(LOOP_SOLREF)}"/>')
         out.append("  </equality>")
     out.append("  <actuator>")
     for a in params["actuators"]:
@@ -371,7 +372,7 @@ def solve_stand(params: dict, tol: float = 1e-13, max_iter: int = 200) -> dict:
     chains = controller_chains(mc, params)
     x = q0[free_idx].copy()
     x_nom = x.copy()
-    for it in range(max_iter):
+    for _ in range(max_iter):
         r, _ = _stand_residual(mc, dc, mujoco, chains, free_idx, x, q0, ids)
         eps = 1e-7
         jac = np.empty((r.size, x.size))
@@ -379,8 +380,9 @@ def solve_stand(params: dict, tol: float = 1e-13, max_iter: int = 200) -> dict:
             xp, xm = x.copy(), x.copy()
             xp[k] += eps
             xm[k] -= eps
-            jac[:, k] = (_stand_residual(mc, dc, mujoco, chains, free_idx, xp, q0, ids)[0]
-                         - _stand_residual(mc, dc, mujoco, chains, free_idx, xm, q0, ids)[0]) / (2 * eps)
+            rp = _stand_residual(mc, dc, mujoco, chains, free_idx, xp, q0, ids)[0]
+            rm = _stand_residual(mc, dc, mujoco, chains, free_idx, xm, q0, ids)[0]
+            jac[:, k] = (rp - rm) / (2 * eps)
         pinv = np.linalg.pinv(jac)
         null = np.eye(x.size) - pinv @ jac
         step = -pinv @ r + null @ (weight * (x_nom - x))

@@ -21,10 +21,12 @@ def model_info() -> dict:
         "ctrl_nq": int(mc.nq), "ctrl_nv": int(mc.nv), "nu": int(ms.nu),
         "mass_kg": float(ms.body_mass.sum()), "ctrl_mass_kg": float(mc.body_mass.sum()),
         "loop_residual_m": sim_loop_residual(ms, d),
-        "foot_height_m": [float(d.site_xpos[ms.site(f"{s}-sole").id][2]) for s in ("left", "right")],
+        "foot_height_m": [float(d.site_xpos[ms.site(f"{s}-sole").id][2])
+                          for s in ("left", "right")],
         "com_height_m": float(d.subtree_com[ms.body("base").id][2]),
         "timestep_s": float(ms.opt.timestep),
-        "torque_limit_Nm": {ms.actuator(a).name: float(ms.actuator_gear[a, 0] * ms.actuator_ctrlrange[a, 1])
+        "torque_limit_Nm": {ms.actuator(a).name:
+                            float(ms.actuator_gear[a, 0] * ms.actuator_ctrlrange[a, 1])
                             for a in range(ms.nu)},
     }
 

@@ -9,7 +9,7 @@ new class here, nothing else changes.
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -26,7 +26,7 @@ class StepTerms(NamedTuple):
     dyn: robot.Dynamics | None = None
     kin: tuple | None = None
     motion: robot.BodyMotion | None = None
-    domain: object = None
+    domain: Any = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +53,8 @@ class Output:
         """(y^a, J_y, J_y_dot v). ``terms``: the ``StepTerms`` already computed at this
         (q, v), or None (outputs that can reuse them do)."""
         f = lambda qq: self.value(model, qq)  # noqa: E731
-        return f(q), spatial.tangent_jacobian(f, q, model.nv), spatial.second_derivative_along(f, q, v)
+        return (f(q), spatial.tangent_jacobian(f, q, model.nv),
+                spatial.second_derivative_along(f, q, v))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,7 +133,8 @@ class FramePosition(Output):
     def evaluate(self, model, q, v, terms=None):
         if terms is not None and terms.motion is not None:   # closed form, this step's
             return robot.site_point_terms(model, terms.kin, terms.motion, self.frame)
-        j, jdv = spatial.with_drift(lambda qq: robot.frame_jacobian(model, qq, self.frame)[:3], q, v)
+        j, jdv = spatial.with_drift(lambda qq: robot.frame_jacobian(model, qq, self.frame)[:3],
+                                    q, v)
         return self.value(model, q), j, jdv
 
 

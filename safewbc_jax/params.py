@@ -14,6 +14,7 @@ import dataclasses
 import math
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -101,7 +102,8 @@ def _vector(src: str, table: str, name: str, value, dim: int) -> np.ndarray:
     return np.broadcast_to(arr, (dim,)).copy()
 
 
-def apply_overrides(params: ControllerParams, overrides: dict, src: str = "params") -> ControllerParams:
+def apply_overrides(params: ControllerParams, overrides: dict,
+                    src: str = "params") -> ControllerParams:
     """Apply a nested dict of overrides (as read from TOML):
 
         [kp] com = 120            [kd] torso = [20, 20, 10]      [weight] arms = 5
@@ -109,7 +111,7 @@ def apply_overrides(params: ControllerParams, overrides: dict, src: str = "param
         mu = 0.5   gamma_qdd = 1e-4   ...
 
     Every key and value is checked; errors name the source, key and value."""
-    kw = {}
+    kw: dict[str, Any] = {}
     for key, value in overrides.items():
         if key in ("kp", "kd", "weight"):
             if not isinstance(value, dict):
@@ -140,7 +142,8 @@ def apply_overrides(params: ControllerParams, overrides: dict, src: str = "param
                 table[name] = jnp.asarray(vec)
             kw[key] = table
         elif key in SCALARS:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            if (isinstance(value, bool) or not isinstance(value, (int, float))
+                    or not math.isfinite(value)):
                 raise ParamsError(f"{src}: {key} = {value!r}: expected a finite number")
             if value < 0 or (key in ("mu", "f_min") and value <= 0):
                 raise ParamsError(f"{src}: {key} = {value!r}: must be positive")
@@ -173,6 +176,7 @@ def to_toml(params: ControllerParams) -> str:
         lines.append(f"\n[{table}]")
         for name, v in getattr(params, table).items():
             arr = np.asarray(v)
-            val = repr(float(arr)) if arr.ndim == 0 else "[" + ", ".join(repr(float(x)) for x in arr) + "]"
+            val = (repr(float(arr)) if arr.ndim == 0 else
+                   "[" + ", ".join(repr(float(x)) for x in arr) + "]")
             lines.append(f"{name} = {val}")
     return "\n".join(lines) + "\n"

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Any
 
 from tqdm import tqdm
 
@@ -113,7 +114,7 @@ class Progress:
         self.warmup = tuple(warmup)
         self.log_interval = float(log_interval)
         self.lines = 0                 # lines written in the log-line mode
-        self._bar = None
+        self._bar: Any = None
         self._closed = False
         self._clock = clock or time.perf_counter
         if quiet:

@@ -23,8 +23,8 @@ class Push(NamedTuple):
     batch axis in the batched path."""
 
     force: np.ndarray
-    at: np.ndarray
-    duration: np.ndarray
+    at: np.ndarray | float          # a float for one push (``single``)
+    duration: np.ndarray | float
 
     @staticmethod
     def none(batch: int) -> "Push":

@@ -4,11 +4,11 @@ Decision variable X = [q_ddot (nv), u (nu), lambda (nc)]. The program (paper, th
 eq. 15, with the A-ECBF rows of eq. 28):
 
     min_X  sum_o || J_o q_ddot + J_o_dot v - y*_o ||^2_{W_o} + X^T Gamma X
-    s.t.   D_eq X = [M  -B  -J^T] X = -h(q, v)                  (dynamics, eq. 13)
-           C_eq X = [J   0   0 ] X = -J_dot v                   (chains and contacts, eq. 14)
-           G_lambda lambda <= h_lambda                          (friction, torsion, ZMP: eqs. 4-7, 9)
-           L_G L_F h q_ddot >= -K_alpha eta - L_F^2 h          (A-ECBF, eq. 28, one row per barrier)
-           -u_max <= u <= u_max                                 (torque limits)
+    s.t.   D_eq X = [M  -B  -J^T] X = -h(q, v)          (dynamics, eq. 13)
+           C_eq X = [J   0   0 ] X = -J_dot v           (chains and contacts, eq. 14)
+           G_lambda lambda <= h_lambda                  (friction, torsion, ZMP: eqs. 4-7, 9)
+           L_G L_F h q_ddot >= -K_alpha eta - L_F^2 h   (A-ECBF, eq. 28, one row per barrier)
+           -u_max <= u <= u_max                         (torque limits)
 
 written as the seam pytree ``QP`` (min 1/2 x'Px + q'x, Ax = b, Gx <= h, lb <= x <= ub),
 which carries the block sizes nv, nu, nc of X as static data for the solvers.
@@ -69,4 +69,3 @@ def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_
     ub = jnp.concatenate([inf, u_max, jnp.full(nc, jnp.inf, dtype)])
     return QP(P=P, q=q, A=A, b=b, G=G, h=hv, lb=lb, ub=ub, soft=soft, nv=nv, nu=nu, nc=nc,
               ng_lambda=G_lambda.shape[0])
-

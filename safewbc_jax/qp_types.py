@@ -25,12 +25,16 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 
 FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
 """The array fields, in the order of the positional constructor."""
+
+
+# a QP's arrays: JAX arrays in the jitted step, NumPy ones on the host (PIQP's) path
+Array = Any
 
 
 class Blocks(NamedTuple):
@@ -55,15 +59,15 @@ class Blocks(NamedTuple):
          meta_fields=["nv", "nu", "nc", "ng_lambda"])
 @dataclasses.dataclass(frozen=True)
 class QP:
-    P: jax.Array   # (n, n) symmetric positive semidefinite
-    q: jax.Array   # (n,)
-    A: jax.Array   # (me, n)
-    b: jax.Array   # (me,)
-    G: jax.Array   # (mi, n)
-    h: jax.Array   # (mi,)
-    lb: jax.Array  # (n,)   -inf where unbounded
-    ub: jax.Array  # (n,)   +inf where unbounded
-    soft: jax.Array  # (mi,) 1.0 where the fallback may relax the row, else 0.0
+    P: Array   # (n, n) symmetric positive semidefinite
+    q: Array   # (n,)
+    A: Array   # (me, n)
+    b: Array   # (me,)
+    G: Array   # (mi, n)
+    h: Array   # (mi,)
+    lb: Array  # (n,)   -inf where unbounded
+    ub: Array  # (n,)   +inf where unbounded
+    soft: Array  # (mi,) 1.0 where the fallback may relax the row, else 0.0
     nv: int | None = None   # X = [q_ddot (nv), u (nu), lambda (nc)]; None: no such blocks
     nu: int | None = None
     nc: int | None = None
@@ -84,6 +88,7 @@ class QP:
         if not self.has_blocks:
             raise ValueError("this QP carries no block sizes (nv, nu): it is not the "
                              "controller's QP of qp.assemble")
+        assert self.nv is not None and self.nu is not None      # has_blocks
         return Blocks(self.nv, self.nu, self.nc)
 
     def split(self, x):
@@ -95,14 +100,14 @@ class QP:
         """The array fields in ``FIELDS`` order."""
         return tuple(getattr(self, f) for f in FIELDS)
 
-    def row(self, l: int) -> "QP":
-        """The l-th QP of a batch of them (each array's leading axis; one lane's, or one
+    def row(self, i: int) -> "QP":
+        """The i-th QP of a batch of them (each array's leading axis; one lane's, or one
         recorded step's)."""
-        return QP(*(getattr(self, f)[l] for f in FIELDS), nv=self.nv, nu=self.nu, nc=self.nc,
-                  ng_lambda=self.ng_lambda)
+        return QP(*(getattr(self, f)[i] for f in FIELDS), nv=self.nv,  # type: ignore[misc]
+                  nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda)
 
     def with_arrays(self, fn) -> "QP":
         """fn applied to every array field, the block sizes kept (``tree_map``'s result,
         without its flattening: the host path calls this every control step)."""
-        return QP(*(fn(getattr(self, f)) for f in FIELDS), nv=self.nv, nu=self.nu,
-                  nc=self.nc, ng_lambda=self.ng_lambda)
+        return QP(*(fn(getattr(self, f)) for f in FIELDS),  # type: ignore[misc]
+                  nv=self.nv, nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda)

@@ -52,11 +52,3 @@ def smoothstep5(x):
     """Quintic 0 -> 1 on [0, 1] with zero first and second derivatives at both ends."""
     x = jnp.clip(x, 0.0, 1.0)
     return x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
-
-
-def blend(y0, target_fn, t_blend):
-    """Reference for the settle phase: from the measured start value y0 to
-    target_fn(0) over t_blend seconds (quintic), as a function of settle time t."""
-    def fn(t):
-        return y0 + (target_fn(0.0 * t) - y0) * smoothstep5(t / t_blend)
-    return fn

@@ -148,12 +148,18 @@ def from_mujoco(m, dtype=jnp.float64, spring_suffixes=SPRING_SUFFIXES) -> RobotM
         require_x64("the controller model (robot.from_mujoco)")
 
     nb = m.nbody - 1
-    jtype, qadr, dadr, jnames = [], [], [], []
+    jtype: list[int] = []
+    qadr: list[int] = []
+    dadr: list[int] = []
+    jnames: list[str | None] = []
     axis = np.zeros((nb, 3))
     for b in range(1, m.nbody):
         n = m.body_jntnum[b]
         if n == 0:
-            jtype.append(FIXED), qadr.append(-1), dadr.append(-1), jnames.append(None)
+            jtype.append(FIXED)
+            qadr.append(-1)
+            dadr.append(-1)
+            jnames.append(None)
             continue
         if n > 1:
             raise ValueError(f"body {m.body(b).name!r} has {n} joints; one at most is supported")
@@ -171,7 +177,8 @@ def from_mujoco(m, dtype=jnp.float64, spring_suffixes=SPRING_SUFFIXES) -> RobotM
         else:
             raise ValueError(f"joint {m.joint(j).name!r}: only free and hinge joints are supported"
                              " in the controller model (leave the rods out)")
-        qadr.append(int(m.jnt_qposadr[j])), dadr.append(int(m.jnt_dofadr[j]))
+        qadr.append(int(m.jnt_qposadr[j]))
+        dadr.append(int(m.jnt_dofadr[j]))
         jnames.append(m.joint(j).name)
     if jtype[0] != FREE:
         raise ValueError("the controller model needs a free joint on its first body")
@@ -267,7 +274,8 @@ def _paths(model: RobotModel):
 def _mat3(a, b):
     """Batched 3 x 3 products written as sums of elementwise products (XLA fuses chains
     of them into a few kernels, where a dot is one kernel each)."""
-    return a[..., :, 0:1] * b[..., 0:1, :] + a[..., :, 1:2] * b[..., 1:2, :] + a[..., :, 2:3] * b[..., 2:3, :]
+    return (a[..., :, 0:1] * b[..., 0:1, :] + a[..., :, 1:2] * b[..., 1:2, :]
+            + a[..., :, 2:3] * b[..., 2:3, :])
 
 
 def _matvec3(a, x):

@@ -132,7 +132,8 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     added = "".join(f"+{s.name}" for s in scenario.safe_sets[len(scenario.safe_sets)
                                                              - len(safe_sets):])
     base = scenario.name if userfile.is_ref(name) else name
-    out_dir = Path(out) if out else Path("runs") / (base + added + ("" if barrier else "_no_barrier"))
+    suffix = "" if barrier else "_no_barrier"
+    out_dir = Path(out) if out else Path("runs") / (base + added + suffix)
     out_dir.mkdir(parents=True, exist_ok=True)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))  # noqa: E731
     say(f"[safewbc] {name}: compiling the controller (about a minute on a 2-core CPU) ...")
@@ -179,8 +180,8 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
 
 
 def format_summary(m: dict) -> str:
-    lines = [f"scenario {m['scenario']}  ({m['duration_s']:.2f} s of motion after {m['settle_s']} s "
-             f"standing; barrier {'on' if m['barrier_on'] else 'off'})",
+    lines = [f"scenario {m['scenario']}  ({m['duration_s']:.2f} s of motion after "
+             f"{m['settle_s']} s standing; barrier {'on' if m['barrier_on'] else 'off'})",
              f"  fell: {m['fell']}   QPs solved {m['qp_solved']}, fallbacks {m['fallbacks']}, "
              f"failed {m['qp_failed']}",
              f"  step latency p50 {m['step_latency_us']['p50']:.0f} us, p99 "
@@ -202,6 +203,7 @@ def format_summary(m: dict) -> str:
                      f"min {m['swing_clearance_min'] * 1000:.1f} mm, missed touchdowns "
                      f"{m['missed_touchdowns']}")
     lines.append(f"  ZMP margin min {m['zmp_margin_min'] * 1000:.1f} mm, foot slip max "
-                 f"{m['foot_slip_max'] * 1000:.2f} mm, torque ratio max {m['torque_ratio_max']:.2f}, "
+                 f"{m['foot_slip_max'] * 1000:.2f} mm, torque ratio max "
+                 f"{m['torque_ratio_max']:.2f}, "
                  f"loop residual max {m['loop_residual_max'] * 1000:.3f} mm")
     return "\n".join(lines)

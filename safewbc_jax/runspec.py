@@ -21,13 +21,14 @@ What varies from rollout to rollout is not in it: the ``ControllerParams``, the 
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 from safewbc_jax import control_step, scenarios
 
 
 @dataclasses.dataclass(frozen=True)
 class RunSpec:
-    scenario: object = "squat"        # a name, "FILE.py:NAME", or a Scenario object
+    scenario: Any = "squat"        # a name, "FILE.py:NAME", or a Scenario object
     barrier: bool = True              # False: every safe set monitored only
     duration: float | None = None     # s of motion (the scenario's default when None)
     settle: float | None = None       # s of standing before it (the scenario's default)

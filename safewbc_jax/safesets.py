@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -132,17 +131,6 @@ class SafeSet:
     def monitored(self) -> "SafeSet":
         """This safe set evaluated only (no QP row)."""
         return dataclasses.replace(self, enforce=False)
-
-
-def split_ref(ref: str) -> tuple[Path, str]:
-    """"FILE.py:NAME" -> (Path, NAME), or SafeSetError."""
-    return userfile.split(ref, "safe set", SafeSetError)
-
-
-def file_digest(ref: str) -> str:
-    """sha256 of the file a reference names (sweeps record it: a resumed table must come
-    from the same barrier)."""
-    return userfile.digest(ref, "safe set", SafeSetError)
 
 
 def load(ref: str) -> SafeSet:

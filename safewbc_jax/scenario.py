@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -45,7 +46,7 @@ class Start:
     arm0: jax.Array
     y0: dict = dataclasses.field(default_factory=dict)
     settle: jax.Array | None = None
-    gait: object = None
+    gait: Any = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +58,7 @@ class Scenario:
     settle: float = 1.5
     blend: float = 1.0
     in_contact: tuple = (1.0, 1.0)
-    gait: object | None = None
+    gait: Any | None = None
     scalars: tuple = ()       # (name, value) overrides of ControllerParams' scalars
 
     def __post_init__(self):
@@ -144,13 +145,16 @@ class Scenario:
 
     def _timed(self, task: Task, tau, start):
         """A time-based reference with its AD derivatives, with the settle blend for tau < 0."""
+        reference = task.reference
+        assert reference is not None       # a timed task (not planned)
+
         def settle_ref(s):
             y0 = start.y0[task.name]
-            target = task.reference(jnp.zeros_like(s), start)
+            target = reference(jnp.zeros_like(s), start)
             w = references.smoothstep5((s + self.settle) / self.blend)
             return y0 + (target - y0) * w
 
-        motion = references.with_derivatives(lambda s: task.reference(s, start),
+        motion = references.with_derivatives(lambda s: reference(s, start),
                                               jnp.maximum(tau, 0.0))
         settle = references.with_derivatives(settle_ref, jnp.minimum(tau, 0.0))
         return tuple(jnp.where(tau < 0, s, m) for s, m in zip(settle, motion))

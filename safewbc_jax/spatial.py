@@ -53,12 +53,6 @@ def quat_exp(w):
     return jnp.concatenate([c[None], k * w])
 
 
-def axis_angle_mat(axis, angle):
-    """Rotation by ``angle`` about the unit vector ``axis`` (Rodrigues)."""
-    k = skew(axis)
-    return jnp.eye(3) + jnp.sin(angle) * k + (1.0 - jnp.cos(angle)) * (k @ k)
-
-
 def euler_zyx(r):
     """Euler ZYX angles of a rotation matrix, r = Rz(yaw) Ry(pitch) Rx(roll).
 
@@ -68,11 +62,6 @@ def euler_zyx(r):
     pitch = -jnp.arcsin(jnp.clip(r[2, 0], -1.0, 1.0))
     yaw = jnp.arctan2(r[1, 0], r[0, 0])
     return jnp.stack([roll, pitch, yaw])
-
-
-def vee(s):
-    """Inverse of skew for a (nearly) skew-symmetric matrix."""
-    return 0.5 * jnp.array([s[2, 1] - s[1, 2], s[0, 2] - s[2, 0], s[1, 0] - s[0, 1]])
 
 
 def integrate(q, v, dt=1.0):

@@ -37,7 +37,8 @@ def build_state_map(sim_model, ctrl_model) -> StateMap:
     """Match joints and actuators of the two MuJoCo models by name."""
     import mujoco
 
-    qpos_idx, qvel_idx = [], []
+    qpos_idx: list[int] = []
+    qvel_idx: list[int] = []
     for j in range(ctrl_model.njnt):
         name = ctrl_model.joint(j).name
         js = mujoco.mj_name2id(sim_model, mujoco.mjtObj.mjOBJ_JOINT, name)

@@ -2,10 +2,10 @@
 
 Paper, "Task Space Inverse dynamics": the error y = y^a(q) - y^d(tau) (eq. 10) is driven by
 the desired output acceleration y* = -K_p y - K_d y_dot + y^d_ddot (eq. 15) through the
-cost ||J_y q_ddot + J_y_dot v - y*||^2_W of the QP (the unnumbered display after eq. 15). A ``Task`` carries all of
-it for one output: the output object (``outputs.Output``), K_p, K_d and W (defaults that
-``ControllerParams`` starts from), and the reference. A scenario is a list of tasks;
-adding one to a scenario is the only edit a new task needs.
+cost ||J_y q_ddot + J_y_dot v - y*||^2_W of the QP (the unnumbered display after eq. 15).
+A ``Task`` carries all of it for one output: the output object (``outputs.Output``), K_p,
+K_d and W (defaults that ``ControllerParams`` starts from), and the reference. A scenario is
+a list of tasks; adding one to a scenario is the only edit a new task needs.
 
 The reference is one of:
 

@@ -38,6 +38,8 @@ def load(ref: str, cls: type, what: str, error=ValueError):
         raise error(f"{what} {ref!r}: file {path} does not exist")
     key = "safewbc_user_" + hashlib.sha256(str(path.resolve()).encode()).hexdigest()[:16]
     spec = importlib.util.spec_from_file_location(key, path)
+    if spec is None or spec.loader is None:
+        raise error(f"{what} {ref!r}: {path} cannot be imported as a Python file")
     module = importlib.util.module_from_spec(spec)
     sys.modules[key] = module
     try:

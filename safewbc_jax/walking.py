@@ -343,12 +343,12 @@ class GaitState(NamedTuple):
     stance side (LEFT, RIGHT, BOTH), time in the current step, both soles' positions when
     it began, steps taken and touchdowns missed (forced switches)."""
 
-    stance: object
-    tau_step: object
-    stance0: object
-    swing0: object
-    steps: object
-    missed: object
+    stance: Any
+    tau_step: Any
+    stance0: Any
+    swing0: Any
+    steps: Any
+    missed: Any
 
     @staticmethod
     def standing(xp=np, dtype=np.float64):

@@ -151,7 +151,9 @@ def test_grid_plan_is_row_major(tmp_path):
     ('[sweep]\nscenario = "arms"\nduration = -1.0', "sweep.duration = -1.0: must be > 0"),
     ('[sweep]\nscenario = "arms"\n[grid]\n"push.magnitude" = [-5.0]', "magnitudes must be >= 0"),
     ('[sweep]\nscenario = "arms"\n[grid]\n"push.at" = [1.0]\n[push]\nat = 2.0', "also swept"),
-    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist" = [1.0]\n"poles.left_fist.p1" = [2.0]', "sweep one or the other"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist" = [1.0]\n"poles.left_fist.p1" = [2.0]',
+     'grid."poles.left_fist" and grid."poles.left_fist.p1" both set the poles of '
+     "'left_fist'; sweep one or the other"),
     ('[sweep]\nscenario = "arms"\n[grid]\nmu = [0.5, 0.5]', "repeated values"),
     ('[sweep]\nscenario = "arms"\n[tune]\nshrink = 1.5', "tune.shrink = 1.5: must be between 0 and 1"),
     ('[sweep\nscenario = "arms"', "not valid TOML"),

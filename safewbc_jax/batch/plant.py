@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -51,10 +52,10 @@ class Plant:
     """Host-side constants of one config: models, index maps, the start state."""
 
     cfg: BatchConfig
-    scenario: object
-    model: object            # RobotModel (controller)
-    mjx_model: object
-    data0: object            # mjx.Data at the stand keyframe (precision.physics keeps its dtypes)
+    scenario: Any
+    model: Any            # RobotModel (controller)
+    mjx_model: Any
+    data0: Any            # mjx.Data at the stand keyframe (precision.physics keeps its dtypes)
     ctx: control_step.Context
     qpos_idx: np.ndarray
     qvel_idx: np.ndarray

@@ -36,7 +36,7 @@ controller state and the metrics stay float64 in either mode.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -63,7 +63,7 @@ def _check_inputs(pl: Plant, params, push: Push, perturb_v) -> int:
     ref = pl.scenario.default_params()
     ref_leaves, ref_tree = jax.tree_util.tree_flatten_with_path(ref)
     try:
-        leaves = ref_tree.flatten_up_to(params)
+        leaves = ref_tree.flatten_up_to(params)  # type: ignore[attr-defined]
     except (ValueError, TypeError) as e:
         raise BatchError(f"params do not have the structure of the {pl.scenario.name!r} "
                          f"scenario's ControllerParams: {e}") from None
@@ -127,7 +127,7 @@ class Carry(NamedTuple):
     metrics, whether it is still standing (and the step it fell at), the measurement and
     the legs' contact sensed after the last physics step."""
 
-    dx: object
+    dx: Any
     ctl: control_step.ControllerState
     tally: control_step.Tally
     plant: metrics.PlantAcc
@@ -384,7 +384,7 @@ def memory_bytes(cfg: BatchConfig, batch: int, chunk=None) -> int:
     # cache off here would do nothing; the minimum compile time for a write is read at
     # each write, so an infinite one skips it. jit reuses this executable in memory for
     # the run that follows.
-    was = jax.config.jax_persistent_cache_min_compile_time_secs
+    was = jax.config.jax_persistent_cache_min_compile_time_secs  # type: ignore[attr-defined]
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
     try:
         m = _compiled(pl, 0, 0, ch).lower(*_arg_shapes(pl, batch)).compile().memory_analysis()

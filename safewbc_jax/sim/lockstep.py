@@ -31,6 +31,7 @@ result does not depend on the other lanes.
 
 from __future__ import annotations
 
+import operator
 import time
 
 import jax
@@ -65,7 +66,7 @@ class Lockstep:
         # where tau sits in the flat Prepared vector: the push's clock, read from prepare's
         # output before that step's conclude has run (StepRecord.tau is Prepared.tau)
         self._prep_size, self._tau_at = leader.prepared_layout()
-        self.compile_s = None
+        self.compile_s: float | None = None
 
     def warm_up(self) -> float:
         """Compile the vmapped step with one step of every lane at the stand."""
@@ -83,15 +84,15 @@ class Lockstep:
         if n > W:
             raise ValueError(f"{n} rollouts for a lockstep of width {W}")
         lanes, sims = self.lanes, self.sims
-        out = [None] * n
+        out: list = [None] * n
         live = np.zeros(W, bool)
         for i in range(W):
             t = tasks[i] if i < n else None
             try:
                 params, dv = (None, None) if t is None else (t[0], t[2])
                 sims[i].reset(dv)
-                lanes[i].restart(*sims[i].sm.to_controller(sims[i].d.qpos, sims[i].d.qvel),
-                                 self.leader.params if params is None else params)
+                q, v = sims[i].sm.to_controller(sims[i].d.qpos, sims[i].d.qvel)
+                lanes[i].restart(q, v, self.leader.params if params is None else params)
                 live[i] = i < n
             except Exception as e:  # noqa: BLE001 - this rollout fails, the others run
                 out[i] = ("failed", f"{type(e).__name__}: {e}")
@@ -109,7 +110,7 @@ class Lockstep:
             lane = lanes[i]
             lane.set_flat_arrays(control.state[i], control.tally[i])
             fell = bool(res.fell_step[i] >= 0)
-            acc = jax.tree_util.tree_map(lambda a: a[i], res.plant)
+            acc = jax.tree_util.tree_map(operator.itemgetter(i), res.plant)
             flat_cols = metrics.finalize(lane.tally.acc, acc, fell,
                                          lane.state.gait if lane.walking else None)
             out[i] = ("done", fell, int(res.fell_step[i]), flat_cols)
@@ -129,7 +130,7 @@ class Lanes(LaneControl):
         W = len(lanes)
         self.fixed, self.state, self.tally = (np.stack(a) for a in
                                               zip(*[lane.flat_arrays() for lane in lanes]))
-        self.flat = None
+        self.flat: np.ndarray | None = None
         self.no_sol = lock.leader.no_solution()
         self.prev_prep = np.zeros((W, lock._prep_size))
         self.prev_sol = np.tile(self.no_sol, (W, 1))
@@ -149,11 +150,11 @@ class Lanes(LaneControl):
         lanes, W = self.lanes, len(self.lanes)
         if self.flat is None:          # every lane's row, unused lanes' included
             self.flat = np.stack([lane.flat_measurement(m) for lane, m in zip(lanes, meas)])
-        failed = {}
-        idx = np.flatnonzero(live).tolist()
-        fs, rs = Controller.admit_lanes([lanes[i] for i in idx], [meas[i] for i in idx])
-        reasons = dict(zip(idx, rs))
-        for i, f in zip(idx, fs):
+        failed: dict[int, str] = {}
+        live_ids = np.flatnonzero(live).tolist()
+        fs, rs = Controller.admit_lanes([lanes[i] for i in live_ids], [meas[i] for i in live_ids])
+        reasons = dict(zip(live_ids, rs))
+        for i, f in zip(live_ids, fs):
             if f is None:     # from a simulator this cannot happen: a lane fault
                 failed[i] = f"measurement refused: {reasons[i]}"
             else:
@@ -168,13 +169,14 @@ class Lanes(LaneControl):
         sols = np.tile(self.no_sol, (W, 1))
         motor = {}
         idx = np.flatnonzero(live)
+        ids = idx.tolist()
         every = idx.size == W
         try:
             if idx.size:
                 got, sols[idx] = Controller.finish_lanes(
                     [lanes[i] for i in idx], prep_np if every else prep_np[idx],
-                    packed if every else packed[idx], [reasons[i] for i in idx],
-                    [meas[i].t for i in idx], t_in)
+                    packed if every else packed[idx], [reasons[i] for i in ids],
+                    [meas[i].t for i in ids], t_in)
                 motor = {i: c.motor for i, c in zip(idx.tolist(), got)}
         except Exception as e:  # noqa: BLE001 - these rollouts fail, with the reason
             for i in idx.tolist():

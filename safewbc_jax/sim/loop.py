@@ -95,7 +95,8 @@ def simulate(sims: list, control: LaneControl, n_steps: int, pushes: list, live,
     sole_ids, pairs = sims[0].sole_ids, sims[0].loop_pairs
     legs = np.zeros(W, bool)
     fell_step = np.full(W, -1)
-    waiting = collections.deque()      # (k, physics) of steps whose record has not come
+    # (k, physics) of the steps whose record has not come
+    waiting: collections.deque = collections.deque()
 
     def accumulate(plant, rec):
         k, (stepped, soles, loop_res, legs_k) = waiting.popleft()

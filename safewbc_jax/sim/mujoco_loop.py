@@ -166,7 +166,7 @@ class OneRobot(LaneControl):
     def __init__(self, ctl: Controller, observer=None):
         super().__init__()
         self.ctl, self.observer = ctl, observer
-        self.last = None
+        self.last: tuple | None = None
 
     def step(self, meas: list, live) -> LaneStep:
         ctl = self.ctl
@@ -233,9 +233,10 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
         diag_fn = jax.jit(partial(walking_diag, model))
     names = [o.name for o in scenario.outputs]
     hnames = [b.name for b in scenario.barriers + scenario.monitors]
-    log = {k: [] for k in ("t", "tau", "u", "status", "fallback", "t_qp", "t_solve", "latency",
-                           "zmp_margin", "eq_residual", "loop_residual", "base_z", "lambda",
-                           "qpos", "stance", "leg_contact", "missed_touchdowns", "alip")}
+    log: dict[str, list] = {k: [] for k in (
+        "t", "tau", "u", "status", "fallback", "t_qp", "t_solve", "latency", "zmp_margin",
+        "eq_residual", "loop_residual", "base_z", "lambda", "qpos", "stance", "leg_contact",
+        "missed_touchdowns", "alip")}
     for nm in names:
         log[f"y_{nm}"], log[f"yd_{nm}"] = [], []
     for hn in hnames:

@@ -235,8 +235,8 @@ def _dual_infeasible(du, pb: Box, eps):
     rows_ok = jnp.all(jnp.where(pb.row_on & (pb.sig <= 0), Gd <= eps, True))
     rows_relaxed_ok = jnp.all(jnp.where(pb.sig > 0, Gd <= eps, True))
     box_ok = jnp.all(jnp.where(pb.ub_on, d <= eps, True) & jnp.where(pb.lb_on, d >= -eps, True))
-    return ((nrm > 0) & (jnp.max(jnp.abs(Pd)) <= eps * pscale) & (qd < -eps * (1 + jnp.max(jnp.abs(pb.q))))
-            & rows_ok & rows_relaxed_ok & box_ok)
+    return ((nrm > 0) & (jnp.max(jnp.abs(Pd)) <= eps * pscale)
+            & (qd < -eps * (1 + jnp.max(jnp.abs(pb.q)))) & rows_ok & rows_relaxed_ok & box_ok)
 
 
 def _converged(x: _PIt, pb: Box, pk: _Pk, res, st: Settings):
@@ -364,8 +364,8 @@ def interior_point(pb: Box, st: Settings, active):
         pinf = _primal_infeasible(new.lam[:m], pb, st.eps_inf)
         dinf = _dual_infeasible(d.u, pb, st.eps_inf) & (a > 0.5)
         status = jnp.where(~finite, NUMERICAL,
-                           jnp.where(conv, SOLVED,
-                                     jnp.where(pinf | dinf, INFEASIBLE, _RUNNING))).astype(jnp.int32)
+                           jnp.where(conv, SOLVED, jnp.where(pinf | dinf, INFEASIBLE, _RUNNING))
+                           ).astype(jnp.int32)
         x_out = jax.tree_util.tree_map(lambda n_, o: jnp.where(finite, n_, o), new, x)
         return _Carry(x=x_out, k=c.k + 1, status=status)
 

@@ -176,8 +176,9 @@ def solve(qp: QP, *, bounded=None, dtype=None, settings: Settings | None = None,
           p_blockdiag: bool = False) -> Result:
     """One controller QP (X = [q_ddot (nv), u (nu), lambda], the block sizes the QP
     carries: a QP from ``qp.assemble``; ValueError for a QP without them, which
-    ``solve_generic`` solves) through the reduced problem in u; pure JAX, jit/vmap-able (the relaxed solve runs with zero iterations where it
-    is not needed; ``solve_batch`` skips it for a whole batch that does not need it).
+    ``solve_generic`` solves) through the reduced problem in u; pure JAX, jit/vmap-able
+    (the relaxed solve runs with zero iterations where it is not needed; ``solve_batch``
+    skips it for a whole batch that does not need it).
     ``bounded``: static indices outside u with finite bounds
     (``reduce.bounded_variables``; none for the controller's QP). ``p_blockdiag``: P has
     no cross terms between q_ddot, u and lambda (true of the controller's QP; static:
@@ -207,14 +208,14 @@ def _batch_impl(qps: QP, reducer, st: Settings) -> Result:
     """vmap of the stages, with the relaxed solve under one batch-level ``lax.cond``: a
     batch in which every QP solves pays nothing for the fallback."""
     red, lift, ok_red = jax.vmap(reducer)(qps)
-    nom = jax.vmap(lambda qp, r, l: _nominal(qp, r, l, st))(qps, red, lift)
+    nom = jax.vmap(lambda qp, r, lf: _nominal(qp, r, lf, st))(qps, red, lift)
     nom = nom._replace(status=jnp.where(ok_red, nom.status, NUMERICAL).astype(jnp.int32))
     rel = None
     if st.fallback:
         need = (nom.status != SOLVED) & ok_red
         rel = lax.cond(
             jnp.any(need),
-            lambda: jax.vmap(lambda qp, r, l, nd: _relaxed(qp, r, l, st, nd))(
+            lambda: jax.vmap(lambda qp, r, lf, nd: _relaxed(qp, r, lf, st, nd))(
                 qps, red, lift, need),
             lambda: jax.vmap(_relaxed_skipped)(qps))
     return jax.vmap(lambda n_, r_: policy.finish(n_, r_, jnp))(nom, rel) if rel is not None \
@@ -252,8 +253,8 @@ def _resolve_chunk(chunk, batch: int):
     return resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
 
 
-def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None = None, p_blockdiag: bool | None = None,
-                chunk: int | str | None = "auto") -> Result:
+def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None = None,
+                p_blockdiag: bool | None = None, chunk: int | str | None = "auto") -> Result:
     """``solve`` over a leading batch dimension of every field, jitted (compiled once per
     shape, block sizes, dtype, settings, structure flags and chunk). ``p_blockdiag`` None:
     checked on the data (``p_block_diagonal``) when it is concrete, else False.

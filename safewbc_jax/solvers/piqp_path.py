@@ -55,7 +55,7 @@ import numpy as np
 import piqp
 import qpsolvers
 
-from safewbc_jax.qp_types import FIELDS, QP
+from safewbc_jax.qp_types import QP
 from safewbc_jax.solvers import policy
 from safewbc_jax.solvers.policy import Attempt
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN, relax_soft_rows_np
@@ -109,7 +109,8 @@ def residuals(x: np.ndarray, qp: QP) -> tuple[float, float, float]:
     """(max |Ax - b|, max inequality violation over G rows and bounds, the same over hard
     rows and bounds only) of x for a numpy QP (``policy.residuals``). Violations are
     >= 0."""
-    return tuple(float(r) for r in policy.residuals(x, qp, np)[:3])
+    eq, ineq, hard = (float(r) for r in policy.residuals(x, qp, np)[:3])
+    return eq, ineq, hard
 
 
 class _DenseBackend:
@@ -119,8 +120,8 @@ class _DenseBackend:
     def __init__(self, settings: dict[str, Any], update: bool = True):
         self.settings = settings
         self.update = update
-        self.solver = None
-        self.shape = None
+        self.solver: Any = None          # a piqp solver, made at the first solve
+        self.shape: tuple | None = None
 
     def _new_solver(self):
         s = piqp.DenseSolver()
@@ -256,10 +257,10 @@ class PiqpSolver:
         L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
         X = np.empty((L, n))
         status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
-        rows = [qp.row(l) for l in range(L)]
-        for l, s in enumerate(solvers):
+        rows = [qp.row(k) for k in range(L)]
+        for k, s in enumerate(solvers):
             t0 = time.perf_counter_ns()
-            X[l], status[l], iters[l] = s._solve_nominal(rows[l])
+            X[k], status[k], iters[k] = s._solve_nominal(rows[k])
             s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
         tol = np.array([s.feas_tol for s in solvers])
         status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)
@@ -270,14 +271,14 @@ class PiqpSolver:
             relaxed_status=np.full(L, NOT_ATTEMPTED), iterations=iters, max_slack=np.zeros(L),
             eq_residual=eq, ineq_violation=ineq, hard_violation=hard, polished=np.zeros(L, bool),
             polish_iterations=np.zeros(L, np.int64))
-        for l in ([] if ok.all() else np.flatnonzero(~ok).tolist()):   # (b), then (c): rare
-            s, t0 = solvers[l], time.perf_counter_ns()
-            nom = Attempt(x=X[l], status=int(status[l]), res=(eq[l], ineq[l], hard[l]),
-                          max_slack=0.0, iterations=int(iters[l]), polished=False,
+        for k in ([] if ok.all() else np.flatnonzero(~ok).tolist()):   # (b), then (c): rare
+            s, t0 = solvers[k], time.perf_counter_ns()
+            nom = Attempt(x=X[k], status=int(status[k]), res=(eq[k], ineq[k], hard[k]),
+                          max_slack=0.0, iterations=int(iters[k]), polished=False,
                           polish_iterations=0)
-            r = policy.finish(nom, s._solve_relaxed(rows[l], n, mi), np)
+            r = policy.finish(nom, s._solve_relaxed(rows[k], n, mi), np)
             for field, a in zip(SolveResult._fields, out):
-                a[l] = getattr(r, field)
+                a[k] = getattr(r, field)
             s.last_solve_time_us += (time.perf_counter_ns() - t0) / 1e3
         return out
 

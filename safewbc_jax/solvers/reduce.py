@@ -38,7 +38,7 @@ classical null-space method; A must have full row rank), finite bounds becoming 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -51,17 +51,17 @@ from safewbc_jax.solvers.settings import BIG
 
 
 class Reduction(NamedTuple):
-    x0: object   # (n,) the solution for u = 0
-    N: object    # (n, nu) d X / d u
+    x0: Any   # (n,) the solution for u = 0
+    N: Any    # (n, nu) d X / d u
 
 
 class Factorisations(NamedTuple):
     """chol(M) -> a factor of symmetric positive definite M; chol_solve(factor, B) ->
     M^-1 B; solve(K, B) -> K^-1 B (LU with partial pivoting)."""
 
-    chol: object
-    chol_solve: object
-    solve: object
+    chol: Any
+    chol_solve: Any
+    solve: Any
 
 
 def _scipy_fast():
@@ -88,7 +88,7 @@ def _blocks(qp: QP) -> tuple[int, int]:
         raise ValueError("the controller's elimination needs the QP's block sizes nv, nu "
                          "(a QP from qp.assemble carries them); for another QP use the "
                          "generic path (jax_qp.solve_generic)")
-    return qp.nv, qp.nu
+    return qp.blocks.nv, qp.blocks.nu
 
 
 def bounded_variables(qp: QP) -> np.ndarray:
@@ -190,7 +190,7 @@ def has_controller_structure(qp: QP) -> bool:
     rows, the constraint rows free of u, and symmetric mass-matrix blocks."""
     if not qp.has_blocks:
         return False
-    nv, nu = qp.nv, qp.nu
+    nv, nu = qp.blocks.nv, qp.blocks.nu
     P, A = np.asarray(qp.P), np.asarray(qp.A)
     n, me = P.shape[-1], A.shape[-2]
     nc = n - nv - nu
@@ -208,7 +208,7 @@ def p_block_diagonal(qp: QP) -> bool:
     if not qp.has_blocks:
         return False
     P = np.asarray(qp.P)
-    nv, nu = qp.nv, qp.nu
+    nv, nu = qp.blocks.nv, qp.blocks.nu
     s = [slice(0, nv), slice(nv, nv + nu), slice(nv + nu, P.shape[-1])]
     return not any(np.any(P[..., s[i], s[j]]) for i in range(3) for j in range(3) if i != j)
 

@@ -89,8 +89,8 @@ def relax_soft_rows(qp: QP, rho=DEFAULT_RHO, rho_lin=DEFAULT_RHO_LIN) -> QP:
 def relax_soft_rows_np(qp: QP, rho=DEFAULT_RHO, rho_lin=DEFAULT_RHO_LIN) -> QP:
     """``relax_soft_rows`` on numpy arrays (same code path), for the single-robot solver
     where a JAX dispatch per fallback would cost more than the construction itself."""
-    qp_np = QP(*(np.asarray(getattr(qp, f), dtype=np.float64) for f in
-                 ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")))
+    qp_np = QP(**{f: np.asarray(getattr(qp, f), dtype=np.float64)  # type: ignore[arg-type]
+                  for f in ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")})
     return _relax(qp_np, np, rho, rho_lin)
 
 

@@ -13,8 +13,9 @@ class SolveStatus(enum.IntEnum):
     SOLVED = 0       # converged to the requested tolerances; the solution passed the checks
     INFEASIBLE = 1   # the solver certified (primal or dual) infeasibility
     MAX_ITER = 2     # iteration limit reached before convergence
-    NUMERICAL = 3    # factorisation failure, non-finite iterate, or a "solved" point that
-                     # failed the caller's residual check
+    # factorisation failure, non-finite iterate, or a "solved" point that failed the
+    # caller's residual check
+    NUMERICAL = 3
 
 
 SOLVED = SolveStatus.SOLVED

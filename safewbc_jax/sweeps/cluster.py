@@ -19,6 +19,7 @@ lockstep width: the table is the one-process table, whichever worker ran each ch
 from __future__ import annotations
 
 import socket
+from pathlib import Path
 import warnings
 
 RETRIES = 2            # runs of a chunk's task after its worker died
@@ -79,7 +80,7 @@ def connect(address: str | None = LOCAL, quiet: bool = False) -> None:
     if ray.is_initialized():
         return
     local = address in (None, LOCAL)
-    if not local:
+    if address is not None and not local:
         check_address(address)
     kw = dict(include_dashboard=False, log_to_driver=not quiet, configure_logging=quiet)
     try:
@@ -134,7 +135,8 @@ def run_chunk(job: dict, params, push, perturb_v) -> dict:
             _LANES[key] = pool.Lanes(job)
         lanes = _LANES[key]
         tasks = pool.chunk_tasks(params, push, perturb_v)
-        results, errors = {}, {}
+        results: dict = {}
+        errors: dict = {}
         for group in pool.lockstep_groups(len(tasks), job["lockstep"]):
             for i, r in zip(group, lanes.run([tasks[i] for i in group])):
                 (results if r[0] == "done" else errors)[i] = r[1]
@@ -151,7 +153,7 @@ def run_chunk(job: dict, params, push, perturb_v) -> dict:
 def _auto_batch(spec, out: str) -> int:
     from safewbc_jax.sweeps.sizing import auto_batch
 
-    return auto_batch(spec, out, "mjx", quiet=True)
+    return auto_batch(spec, Path(out), "mjx", quiet=True)
 
 
 # --- the driver
@@ -192,8 +194,8 @@ class RayExecutor:
 
     def describe(self) -> str:
         r = _ray().cluster_resources()
-        n = int(r.get("GPU", 0)) if self.engine == "mjx" and r.get("GPU", 0) else int(r.get("CPU", 0))
         what = "GPU" if self.engine == "mjx" and r.get("GPU", 0) else "CPU"
+        n = int(r.get(what, 0))
         nodes = len([x for x in _ray().nodes() if x.get("Alive")])
         return (f"on a Ray cluster ({nodes} node{'s' if nodes != 1 else ''}, {n} {what}"
                 f"{'s' if n != 1 else ''}, one chunk per {what}, {self.engine} engine)")

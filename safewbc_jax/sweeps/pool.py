@@ -300,6 +300,8 @@ class PoolExecutor:
     # --- a chunk
     def __call__(self, spec, params, push, perturb_v) -> dict:
         self.start()
+        n_steps, dtypes = self.n_steps, self.dtypes     # set by the first worker
+        assert n_steps is not None and dtypes is not None
         tasks = chunk_tasks(params, push, perturb_v)
         m = len(tasks)
         groups = lockstep_groups(m, self.lockstep)
@@ -340,7 +342,7 @@ class PoolExecutor:
                 elif s.proc.sentinel in ready or not s.proc.is_alive():
                     s.proc.join(5)
                     reason = _death_reason(s.proc)
-                elif now - s.since > (limit := self._timeout(self.n_steps, len(groups[s.task]))):
+                elif now - s.since > (limit := self._timeout(n_steps, len(groups[s.task]))):
                     reason = f"no result within {limit:.0f} s (worker killed)"
                 if reason is None:
                     continue
@@ -355,7 +357,7 @@ class PoolExecutor:
                 new = self._spawn(s.cpu)
                 self.slots[k] = new
                 self._await_ready(new)
-        return columns(self.dtypes, m, results, errors)
+        return columns(dtypes, m, results, errors)
 
 
 def resolve_engine(engine: str) -> str:

@@ -140,7 +140,8 @@ def poles_figure(man, cols, oc, path) -> bool:
         ax[0].set(xscale="log", xlabel=pc[0], ylabel=f"worst min h_{t} (mm)")
         ax[1].errorbar(x, st["rate"], yerr=_err(st["rate"], st["lo"], st["hi"]), fmt="o-",
                        capsize=3)
-        ax[1].set(xscale="log", xlabel=pc[0], ylabel="violation rate (Wilson 95%)", ylim=(-0.02, 1.02))
+        ax[1].set(xscale="log", xlabel=pc[0], ylabel="violation rate (Wilson 95%)",
+                  ylim=(-0.02, 1.02))
     else:
         a, b = pc[0], pc[1]
         xa, xb = np.unique(cols[a]), np.unique(cols[b])
@@ -174,7 +175,8 @@ def poles_figure(man, cols, oc, path) -> bool:
             axis.set(xlabel=b, ylabel=a)
         ax[0].set_title(f"worst-case min h_{t} over rollouts (mm)")
         ax[1].set_title("violation rate (count / rollouts; falls noted)")
-    fig.suptitle(f"{man['scenario']}: barrier {t}, violation when min h < -{1e3 * float(man.get('violation_tol', 0)):g} mm")
+    tol_mm = 1e3 * float(man.get("violation_tol", 0))
+    fig.suptitle(f"{man['scenario']}: barrier {t}, violation when min h < -{tol_mm:g} mm")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -301,19 +303,23 @@ def summary(man, cols, oc, figures, top: int = 5) -> str:
     lines = [f"# Sweep report: {man['scenario']}", ""]
     lines += [f"- spec: `{man.get('spec_path')}` (fingerprint {man['fingerprint']}), seed "
               f"{man['seed']}, batch {man['batch']}",
-              f"- rollouts in the table: {n} of {man['n_rollouts']} ({done}/{man['n_chunks']} chunks)"
+              f"- rollouts in the table: {n} of {man['n_rollouts']} "
+              f"({done}/{man['n_chunks']} chunks)"
               + ("" if n == man["n_rollouts"] else " -- **partial**: rerun the sweep to finish"),
               f"- swept axes: {', '.join(man.get('axes', [])) or 'none'}",
               f"- target barrier: `{man.get('target')}`; a rollout violates it when min h < "
               f"-{man.get('violation_tol', 0.0)}; barriers enforced: "
               f"{', '.join(man.get('barriers', [])) or 'none'}",
-              f"- tracking objective: {' + '.join(_term(man, c) for c in oc['objective_names']) or 'none'}", ""]
+              "- tracking objective: "
+              f"{' + '.join(_term(man, c) for c in oc['objective_names']) or 'none'}", ""]
     tot = group_stats(oc, np.zeros(n, int), 1)
     flo, fhi = wilson_interval(int(tot["falls"][0]), n)
     lines += ["## Overall (95% Wilson intervals)", "",
-              f"- barrier violations: {_rate(int(tot['violations'][0]), n, tot['lo'][0], tot['hi'][0])}",
+              "- barrier violations: "
+              f"{_rate(int(tot['violations'][0]), n, tot['lo'][0], tot['hi'][0])}",
               f"- falls: {_rate(int(tot['falls'][0]), n, flo, fhi)}",
-              f"- worst min h: {tot['hmin'][0] * 1e3:.2f} mm" if np.isfinite(tot["hmin"][0]) else "- worst min h: n/a",
+              f"- worst min h: {tot['hmin'][0] * 1e3:.2f} mm" if np.isfinite(tot["hmin"][0])
+              else "- worst min h: n/a",
               f"- QPs failed (held torque): {int(np.sum(cols.get('qp_failed', 0)))}, relaxed "
               f"(fallback): {int(np.sum(cols.get('fallbacks', 0)))}", ""]
     ctrl, push = axis_kinds(man)
@@ -357,7 +363,8 @@ def summary(man, cols, oc, figures, top: int = 5) -> str:
 
 def make_report(out, dest=None) -> dict:
     """Write the figures and summary.md of sweep directory ``out`` into ``dest`` (default
-    ``out``); of a tuning folder (``tuning.json``), ``tune_report.make_tune_report``'s. Returns {"figures": [...], "summary": path, "rollouts": n}."""
+    ``out``); of a tuning folder (``tuning.json``), ``tune_report.make_tune_report``'s.
+    Returns {"figures": [...], "summary": path, "rollouts": n}."""
     from safewbc_jax.sweeps import tune_report
 
     if tune_report.is_tuning(out):
@@ -375,4 +382,5 @@ def make_report(out, dest=None) -> dict:
             figures.append(name)
     text = summary(man, cols, oc, figures)
     (dest / "summary.md").write_text(text)
-    return {"figures": figures, "summary": str(dest / "summary.md"), "rollouts": len(cols["rollout"])}
+    return {"figures": figures, "summary": str(dest / "summary.md"),
+            "rollouts": len(cols["rollout"])}

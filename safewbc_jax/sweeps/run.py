@@ -5,8 +5,8 @@ perturbation draw k % repeats; its initial velocity perturbation comes from a ge
 seeded by (seed, k). Chunk c holds rollouts [c B, (c + 1) B). On the mjx engine a short
 last chunk is padded to B with copies of its last rollout (one compiled shape for the whole
 sweep) and the padding is dropped before writing; the mujoco engine's executor says it
-needs no padding (``pads = False``) and runs the short chunk as it is. Finished chunks are Parquet files (see :mod:`.table`); a rerun
-skips them.
+needs no padding (``pads = False``) and runs the short chunk as it is. Finished chunks are
+Parquet files (see :mod:`.table`); a rerun skips them.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -123,7 +123,7 @@ def preflight(spec: SweepSpec, seed: int | None = None, *, check_poles: bool = T
 
 
 def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | None = None,
-              executor: Callable | None = None, progress: Callable | None = None,
+              executor: Any = None, progress: Callable | None = None,
               spec_text: str | None = None, max_chunks: int | None = None,
               check_poles: bool = True, hosts: int = 1, host_index: int = 0,
               quiet: bool = False, desc: str | None = None, stream=None,
@@ -235,7 +235,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
             spec.safe_sets))
     where = (execute.describe() if hasattr(execute, "describe") else
              f"on {len(devs)} device{'s' if len(devs) > 1 else ''} ({devs[0].platform})"
-             if engine == "mjx" else f"on {workers} MuJoCo worker{'s' if workers > 1 else ''}")
+             if engine == "mjx" else
+             f"on {workers} MuJoCo worker{'s' if (workers or 0) > 1 else ''}")
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
         f"in {len(chunks)} chunk{'s' if len(chunks) > 1 else ''} of {batch} {where}"
         + ("" if key in _COMPILED else "; the first chunk includes compilation"))

@@ -54,7 +54,8 @@ class GridRefine:
         self.lo, self.hi = np.zeros(dim), np.ones(dim)
         self.points, self.rounds, self.shrink = int(points), int(rounds), float(shrink)
         self.round = 0
-        self.best_x, self.best_v = None, np.inf
+        self.best_x: np.ndarray | None = None
+        self.best_v = np.inf
 
     @property
     def population(self) -> int:

@@ -1,5 +1,7 @@
 """Sweep spec files: parsing, validation and the plan of rollouts.
 
+Size: one file format, each of its six tables parsed and checked where it is read.
+
 A spec is a TOML file::
 
     [sweep]
@@ -66,6 +68,7 @@ import json
 import math
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -206,7 +209,8 @@ def _fmt(v) -> str:
 def _number(src, key, value, *, positive=False, nonneg=False, integer=False):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         want = "an integer" if integer else "a number"
-        raise SpecError(f"{src}: {key} = {_fmt(value)}: expected {want}, got {type(value).__name__}")
+        raise SpecError(f"{src}: {key} = {_fmt(value)}: expected {want}, "
+                        f"got {type(value).__name__}")
     if integer and not isinstance(value, int):
         raise SpecError(f"{src}: {key} = {_fmt(value)}: expected an integer")
     if not math.isfinite(value):
@@ -239,10 +243,10 @@ def _axis_values(src, key, value) -> tuple:
         if form == "logspace":
             if a <= 0 or b <= 0:
                 raise SpecError(f"{src}: {where}.logspace = {_fmt(arg)}: endpoints must be > 0")
-            vals = np.geomspace(a, b, n)
+            grid = np.geomspace(a, b, n)
         else:
-            vals = np.linspace(a, b, n)
-        return tuple(float(x) for x in vals)
+            grid = np.linspace(a, b, n)
+        return tuple(float(x) for x in grid)
     if not isinstance(value, list):
         raise SpecError(f"{src}: {where} = {_fmt(value)}: expected a list of numbers, got "
                         f"{type(value).__name__}")
@@ -336,7 +340,7 @@ def _parse_axis(src, key, values, info) -> Axis:
     if head in GAIN_TABLES or head in SCALES:
         if len(parts) != 2 or parts[1] not in outputs:
             raise bad(f"expected {head}.OUTPUT with OUTPUT one of {list(outputs)}")
-        if head == "weight" and any(v < 0 for v in values) or head != "weight" and any(v <= 0 for v in values):
+        if any(v < 0 if head == "weight" else v <= 0 for v in values):
             raise SpecError(f"{src}: {where} = {_fmt(list(values))}: must be "
                             f"{'>= 0' if head == 'weight' else '> 0'}")
         return Axis(key, "gain" if head in GAIN_TABLES else "scale", parts[1], values)
@@ -394,7 +398,8 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
     sw = _table(src, data, "sweep")
     for k, v in sw.items():
         if k not in SWEEP_KEYS:
-            raise SpecError(f"{src}: unknown key sweep.{k} = {_fmt(v)}; known: {', '.join(SWEEP_KEYS)}")
+            raise SpecError(f"{src}: unknown key sweep.{k} = {_fmt(v)}; "
+                            f"known: {', '.join(SWEEP_KEYS)}")
         want = SWEEP_KEYS[k]
         if want is str and not isinstance(v, str) or want is bool and not isinstance(v, bool):
             raise SpecError(f"{src}: sweep.{k} = {_fmt(v)}: expected "
@@ -447,9 +452,10 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
         single = [a for a in axes if a.kind == "pole" and a.target == b]
         if whole and single:
             raise SpecError(f"{src}: grid.\"{whole[0].name}\" and grid.\"{single[0].name}\" "
-                            "both set the poles of {b!r}; sweep one or the other")
+                            f"both set the poles of {b!r}; sweep one or the other")
     for o in outputs:
-        kinds = {a.name.split(".")[0] for a in axes if a.target == o and a.kind in ("gain", "scale")}
+        kinds = {a.name.split(".")[0] for a in axes
+                 if a.target == o and a.kind in ("gain", "scale")}
         for g in GAIN_TABLES:
             clash = {g, f"{g}_scale"} | ({"gain_scale"} if g in ("kp", "kd") else set())
             if len(kinds & clash) > 1:
@@ -460,7 +466,8 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
     push = dict(PUSH_DEFAULTS)
     for k, v in push_tab.items():
         if k not in PUSH_KEYS:
-            raise SpecError(f"{src}: unknown key push.{k} = {_fmt(v)}; known: {', '.join(PUSH_KEYS)}")
+            raise SpecError(f"{src}: unknown key push.{k} = {_fmt(v)}; "
+                            f"known: {', '.join(PUSH_KEYS)}")
         if any(a.kind == "push" and a.target == k for a in axes):
             raise SpecError(f"{src}: push.{k} = {_fmt(v)} is also swept as grid.\"push.{k}\"; "
                             "give it in one place")
@@ -526,7 +533,8 @@ class TuneParam:
 
 def _parse_objective(src, v, outputs) -> dict:
     """tune.objective: a list of metric names (weights 1) or a table {name = weight}."""
-    allowed = [f"tracking_rms.{o}" for o in outputs] + list(OBJECTIVE_METRICS) + list(MARGIN_METRICS)
+    allowed = ([f"tracking_rms.{o}" for o in outputs] + list(OBJECTIVE_METRICS)
+               + list(MARGIN_METRICS))
     if isinstance(v, str):
         v = [v]
     if isinstance(v, list):
@@ -596,10 +604,11 @@ def _parse_tune(src, tab, info, axes, target, defaults) -> dict:
     """The [tune] table of ``safewbc tune`` (and its ``tune-poles`` preset), every key
     checked here, before anything compiles."""
     barriers, monitors, outputs, pole_counts = info
-    tune = dict(TUNE_DEFAULTS)
+    tune: dict[str, Any] = dict(TUNE_DEFAULTS)
     for k, v in tab.items():
         if k not in TUNE_KEYS:
-            raise SpecError(f"{src}: unknown key tune.{k} = {_fmt(v)}; known: {', '.join(TUNE_KEYS)}")
+            raise SpecError(f"{src}: unknown key tune.{k} = {_fmt(v)}; "
+                            f"known: {', '.join(TUNE_KEYS)}")
         if k == "objective":
             tune["weights"] = _parse_objective(src, v, outputs)
             tune[k] = list(tune["weights"])

@@ -85,12 +85,14 @@ def summary(t: dict, figures: list) -> str:
     lines = [f"# Tuning: {Path(t['spec_path']).name}", "",
              f"- scenario {t['scenario']}, method {t['method']}, seed {t['seed']}",
              f"- {len(t['params'])} parameters: " + ", ".join(
-                 f"{p['name']} in [{p['lo']:.4g}, {p['hi']:.4g}] ({p['scale']})" for p in t["params"]),
+                 f"{p['name']} in [{p['lo']:.4g}, {p['hi']:.4g}] ({p['scale']})"
+                 for p in t["params"]),
              f"- objective: {obj}; unsafe: a fall, a lost rollout, or an enforced barrier "
              f"({', '.join(t['barriers']) or 'none'}) below -{t['violation_tol']:g}",
              f"- {len(t['generations'])} generations, {t['used']} of {t['budget']} rollouts "
              f"({t['draws']} per candidate); stopped: {t['stop']}", "",
-             "| generation | candidates | safe | unsafe rollouts | best safe objective | best so far |",
+             "| generation | candidates | safe | unsafe rollouts | best safe objective "
+             "| best so far |",
              "|---|---|---|---|---|---|"]
     for x in t["generations"]:
         safe = [c for c in x["candidates"] if _safe(c)]

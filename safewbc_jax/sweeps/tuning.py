@@ -42,6 +42,7 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -169,16 +170,16 @@ def distribution(spec: SweepSpec, params) -> tuple:
     tuned = {p.axis.target for p in params if p.axis.kind in ("poles", "pole")}
     names = {p.name for p in params}
     targets = {p.axis.target for p in params}
-    other = [a for a in spec.axes if a.name not in names
+    kept = [a for a in spec.axes if a.name not in names
              and not (a.kind in ("poles", "pole") and a.target in tuned)]
-    bad = [a.name for a in other if a.kind != "push" and (len(a.values) > 1
+    bad = [a.name for a in kept if a.kind != "push" and (len(a.values) > 1
                                                          or a.target in targets)]
     if bad:
         raise SpecError(f"{spec.path}: tune runs over the push distribution; grid axes {bad} "
                         "are neither pushes nor tuned parameters, nor single fixed values of "
                         "something not tuned (give fixed values in [params], or tune them in "
                         "tune.params)")
-    other = tuple(other)
+    other = tuple(kept)
     return other, dataclasses.replace(spec, axes=other, rows=None).settings_array()
 
 
@@ -338,7 +339,7 @@ class _Run:
     spec: SweepSpec
     cfg: TuneConfig
     params: tuple            # TuneParam, after Theorem 1's repair
-    base: object             # the spec's ControllerParams
+    base: Any             # the spec's ControllerParams
     etas: dict               # barrier -> (draws, r) eta(x0) at the start states
     dist_axes: tuple
     dist_rows: np.ndarray
@@ -347,7 +348,7 @@ class _Run:
     seed: int
     sweep_kw: dict           # run_sweep's batch, executor, progress, quiet, engine, workers
     title: str
-    say: object
+    say: Any
     units: dict              # barrier -> the unit of its h
 
     def rows(self, vals: np.ndarray, dist_index) -> list:
