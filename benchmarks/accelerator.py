@@ -65,7 +65,7 @@ def missing_packages() -> list[str]:
 
 
 def pushes(batch: int, seed: int):
-    from safewbc_jax.push import PUSH_AT, PUSH_FOR, Push
+    from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR, Push
 
     fy = -30.0 * np.random.default_rng(seed).uniform(0, 1, batch)
     return Push(np.stack([np.zeros(batch), fy, np.zeros(batch)], 1),
@@ -76,9 +76,9 @@ def bare_physics(cfg, batch: int, n_physics: int) -> float:
     """mjx.step steps/s of the plant of ``cfg`` at ``batch``, its precision (second call)."""
     import jax
 
-    from safewbc_jax import precision
-    from safewbc_jax.batch.rollout import plant
-    from safewbc_jax.mjx_import import import_mjx
+    from safewbc_jax.control import precision
+    from safewbc_jax.sim.mjx.rollout import plant
+    from safewbc_jax.sim.mjx.imports import import_mjx
 
     pl = plant(cfg)
     step = jax.vmap(precision.physics(import_mjx().step, pl.data0.qvel.dtype), in_axes=(None, 0))
@@ -137,8 +137,8 @@ def main(argv=None) -> int:
     import jax
 
     import safewbc_jax
-    from safewbc_jax import precision
-    from safewbc_jax.batch import rollout as R
+    from safewbc_jax.control import precision
+    from safewbc_jax.sim.mjx import rollout as R
     from safewbc_jax.solvers import jax_qp
 
     safewbc_jax.enable_x64()

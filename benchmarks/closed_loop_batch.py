@@ -40,7 +40,7 @@ def single_robot_loop(n_steps: int, settle: float) -> tuple[float, float]:
     import mujoco
     import numpy as np
 
-    from safewbc_jax.deploy import Controller, Measurement
+    from safewbc_jax.deploy.controller import Controller, Measurement
     from safewbc_jax.sim.mujoco_loop import load_at_stand
 
     cpus = os.sched_getaffinity(0)
@@ -92,11 +92,11 @@ def main(argv=None) -> dict:
     import jax
     import numpy as np
 
-    from safewbc_jax import precision
-    from safewbc_jax.batch.rollout import (BatchConfig, default_chunk, default_params, plant,
+    from safewbc_jax.control import precision
+    from safewbc_jax.sim.mjx.rollout import (BatchConfig, default_chunk, default_params, plant,
                                            run_batch)
-    from safewbc_jax.chunking import resolve_chunk
-    from safewbc_jax.mjx_import import import_mjx
+    from safewbc_jax.base.chunking import resolve_chunk
+    from safewbc_jax.sim.mjx.imports import import_mjx
 
     mjx = import_mjx()
     settle = 1.0      # the arms scenario's reference blend

@@ -49,9 +49,10 @@ def _round(x):
 
 
 def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
-    from safewbc_jax import metrics, scenarios
-    from safewbc_jax.push import Push
-    from safewbc_jax.runner import check_run_options
+    from safewbc_jax import scenarios
+    from safewbc_jax.control import metrics
+    from safewbc_jax.sim.push import Push
+    from safewbc_jax.app.runner import check_run_options
     from safewbc_jax.sim.mujoco_loop import RunConfig, run
 
     sc = scenarios.get_scenario(name)
@@ -123,8 +124,9 @@ def main(argv=None) -> dict:
     import tsid_anchor
 
     import safewbc_jax
-    from safewbc_jax.cli import pin_to_cpu
-    from safewbc_jax import contacts, paths
+    from safewbc_jax.app.cli import pin_to_cpu
+    from safewbc_jax.base import paths
+    from safewbc_jax.model import contacts
 
     safewbc_jax.enable_x64()
     pinned = pin_to_cpu(args.cpu)

@@ -33,13 +33,13 @@ def main(argv=None) -> dict:
 
     safewbc_jax.enable_x64()
     if args.case == "run":
-        from safewbc_jax.deploy import Controller
+        from safewbc_jax.deploy.controller import Controller
         from safewbc_jax.sim.mujoco_loop import load_at_stand
 
         _, _, _, sm, d = load_at_stand()
         Controller("squat").start(*sm.to_controller(d.qpos, d.qvel))
     else:
-        from safewbc_jax.batch import rollout as R
+        from safewbc_jax.sim.mjx import rollout as R
 
         scenario = args.case.split("-", 1)[1]
         R.run_batch(R.BatchConfig(scenario, duration=0.05, settle=1.0),

@@ -60,7 +60,7 @@ def physics_part(args) -> list:
     sys.path.insert(0, str(Path(__file__).parent))
     from accelerator import bare_physics
 
-    from safewbc_jax.batch.rollout import BatchConfig
+    from safewbc_jax.sim.mjx.rollout import BatchConfig
 
     rows = []
     for dtype, prec in (("float32", "mixed"), ("float64", "float64")):
@@ -109,7 +109,7 @@ def closed_part(args, physics: list) -> list:
     sys.path.insert(0, str(Path(__file__).parent))
     from accelerator import pushes
 
-    from safewbc_jax.batch import rollout as R
+    from safewbc_jax.sim.mjx import rollout as R
 
     phys = {(r["dtype"], r["batch"]): r["steps_per_s"] for r in physics}
     rows = []
@@ -149,7 +149,7 @@ def _fixture_errors(run_mixed) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from safewbc_jax.qp_types import QP
+    from safewbc_jax.solvers.problem import QP
     from safewbc_jax.solvers import jax_qp
 
     spec = importlib.util.spec_from_file_location("qp_fixture", ROOT / "tests/data/qp_fixture.py")
@@ -181,7 +181,7 @@ def _fixture_errors(run_mixed) -> dict:
 def precision_part(args) -> dict:
     import jax
 
-    from safewbc_jax import precision
+    from safewbc_jax.control import precision
     from safewbc_jax.solvers import jax_qp
 
     def mixed(qps):
@@ -230,8 +230,8 @@ def main(argv=None) -> int:
     import jax
 
     import safewbc_jax
-    from safewbc_jax import precision
-    from safewbc_jax.batch.rollout import BATCHED_SCENARIOS
+    from safewbc_jax.control import precision
+    from safewbc_jax.sim.mjx.rollout import BATCHED_SCENARIOS
     from safewbc_jax.solvers import jax_qp
 
     for p in args.precisions:

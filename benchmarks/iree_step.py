@@ -108,8 +108,8 @@ def _case(rng, ctl, q0, v0):
     v = v + rng.uniform(-0.2, 0.2, v.size)
     dt, settle = ctl.control_dt, ctl.scenario.settle
     t = settle + rng.uniform(0.05, 1.0)
-    from safewbc_jax import control_step
-    from safewbc_jax.deploy import Measurement
+    from safewbc_jax.control import step as control_step
+    from safewbc_jax.deploy.controller import Measurement
 
     st = control_step.init_state(ctl.ctx, q, v, np, np.float64)[0]
     st = st._replace(t0=np.asarray(0.0), prev_t=np.asarray(t - dt),
@@ -145,10 +145,10 @@ def main(argv=None) -> dict:
     import numpy as np
 
     import safewbc_jax
-    from safewbc_jax import control_step
-    from safewbc_jax.cli import pin_to_cpu
-    from safewbc_jax.deploy import Controller, Measurement
-    from safewbc_jax.packing import FlatTree, Packer
+    from safewbc_jax.control import step as control_step
+    from safewbc_jax.app.cli import pin_to_cpu
+    from safewbc_jax.deploy.controller import Controller, Measurement
+    from safewbc_jax.deploy.packing import FlatTree, Packer
     from safewbc_jax.sim.mujoco_loop import load_at_stand
 
     safewbc_jax.enable_x64()

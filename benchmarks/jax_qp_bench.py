@@ -79,7 +79,10 @@ def generate(n):
     import mujoco
     import numpy as np
 
-    from safewbc_jax import control_step, controller, paths, robot, scenarios
+    from safewbc_jax import scenarios
+    from safewbc_jax.base import paths
+    from safewbc_jax.control import step as control_step, terms as controller
+    from safewbc_jax.model import robot
 
     mj = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
     rm = robot.from_mujoco(mj)
@@ -132,7 +135,7 @@ def main(argv=None) -> dict:
     import numpy as np
     import piqp
 
-    from safewbc_jax.qp_types import QP
+    from safewbc_jax.solvers.problem import QP
     from safewbc_jax.solvers import jax_qp, reduce
     from safewbc_jax.solvers.piqp_path import PiqpSolver
 

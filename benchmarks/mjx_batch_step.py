@@ -32,8 +32,9 @@ def main(argv=None) -> dict:
     import jax.numpy as jnp
     import mujoco
 
-    from safewbc_jax import paths, precision
-    from safewbc_jax.mjx_import import import_mjx
+    from safewbc_jax.base import paths
+    from safewbc_jax.control import precision
+    from safewbc_jax.sim.mjx.imports import import_mjx
 
     mjx = import_mjx()
 

@@ -41,7 +41,7 @@ def main(argv=None):
     import safewbc_jax
 
     safewbc_jax.enable_x64()
-    from safewbc_jax import deploy
+    from safewbc_jax.deploy import controller as deploy
     from safewbc_jax.solvers import policy
     from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
     from safewbc_jax.sim.mujoco_loop import SimRobot, rollout

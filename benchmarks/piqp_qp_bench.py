@@ -52,7 +52,7 @@ def base_qp(rng, n, me, mi, n_soft):
 def qp_stream(rng, steps, n, me, mi, n_soft, eps):
     """Slowly varying QPs: matrices do a small random walk, vectors drift smoothly; every QP
     stays feasible at a drifting x0 (b = A x0, h = G x0 + gap)."""
-    from safewbc_jax.qp_types import QP
+    from safewbc_jax.solvers.problem import QP
 
     s = base_qp(rng, n, me, mi, n_soft)
     P, A, G = s["P"], s["A"], s["G"]
@@ -98,7 +98,7 @@ def main(argv=None) -> dict:
     import piqp
     import qpsolvers
 
-    from safewbc_jax.qp_types import QP
+    from safewbc_jax.solvers.problem import QP
     from safewbc_jax.solvers.piqp_path import PiqpSolver
     from safewbc_jax.solvers.result import fallback_name
 

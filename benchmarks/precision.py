@@ -1,5 +1,5 @@
 """float64 against the batched path's other precisions, on the recorded QPs and in closed
-loop (``safewbc_jax/precision.py``).
+loop (``safewbc_jax/control/precision.py``).
 
 fixture     every QP of ``tests/data/controller_qps.npz`` solved by the JAX solver in
             float64, in float32 and in the "mixed" mode (float32 interior point, float64
@@ -36,8 +36,8 @@ def fixture_part() -> None:
     import jax
     import jax.numpy as jnp
 
-    from safewbc_jax import precision
-    from safewbc_jax.qp_types import QP
+    from safewbc_jax.control import precision
+    from safewbc_jax.solvers.problem import QP
     from safewbc_jax.solvers import jax_qp, reduce
 
     spec = importlib.util.spec_from_file_location("qp_fixture", ROOT / "tests/data/qp_fixture.py")
@@ -77,8 +77,8 @@ def fixture_part() -> None:
 
 
 def closed_part(scenarios, batch: int, duration) -> None:
-    from safewbc_jax.batch.rollout import BatchConfig, default_params, run_batch
-    from safewbc_jax.push import PUSH_AT, PUSH_FOR, Push
+    from safewbc_jax.sim.mjx.rollout import BatchConfig, default_params, run_batch
+    from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR, Push
 
     rng = np.random.default_rng(0)
     print(f"\nclosed loop: mixed against float64, {batch} rollouts each, lateral pushes")

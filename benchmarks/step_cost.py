@@ -26,7 +26,7 @@ STANDING = ("squat", "bow", "arms")
 
 
 def deployed(names, q0, v0) -> dict:
-    from safewbc_jax.deploy import Controller
+    from safewbc_jax.deploy.controller import Controller
 
     out = {}
     for name in names:
@@ -41,9 +41,11 @@ def parts(name, q0, v0) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from safewbc_jax import controller, kernels, robot
-    from safewbc_jax.deploy import Controller
-    from safewbc_jax.outputs import StepTerms
+    from safewbc_jax.control import terms as controller
+    from safewbc_jax.deploy import kernels
+    from safewbc_jax.model import robot
+    from safewbc_jax.deploy.controller import Controller
+    from safewbc_jax.control.outputs import StepTerms
     from safewbc_jax.solvers import reduce
 
     ctl = Controller(name)

@@ -54,10 +54,12 @@ def main(argv=None) -> dict:
     import numpy as np
 
     import safewbc_jax
-    from safewbc_jax import controller, kernels, paths
-    from safewbc_jax.cli import pin_to_cpu
-    from safewbc_jax.deploy import Controller
-    from safewbc_jax.packing import FlatTree, Packer
+    from safewbc_jax.base import paths
+    from safewbc_jax.control import terms as controller
+    from safewbc_jax.deploy import kernels
+    from safewbc_jax.app.cli import pin_to_cpu
+    from safewbc_jax.deploy.controller import Controller
+    from safewbc_jax.deploy.packing import FlatTree, Packer
     from safewbc_jax.sim.mujoco_loop import load_at_stand
     from safewbc_jax.solvers import policy, reduce
 

@@ -29,7 +29,7 @@ CHILD = r"""
 import json, os, sys, time
 import numpy as np
 import safewbc_jax
-from safewbc_jax.batch.rollout import BatchConfig, default_params, plant, run_batch
+from safewbc_jax.sim.mjx.rollout import BatchConfig, default_params, plant, run_batch
 
 def cpu():
     t = os.times()

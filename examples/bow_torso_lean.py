@@ -16,8 +16,7 @@ Run it:
 or from Python: ``python examples/bow_torso_lean.py``.
 """
 
-from safewbc_jax import robot
-from safewbc_jax.safesets import SafeSet
+from safewbc_jax import SafeSet, robot
 
 
 def torso_lean(model, q, threshold, domain=None):
@@ -31,7 +30,7 @@ TORSO_LEAN = SafeSet("torso_lean", torso_lean, relative_degree=2, poles=(10.0, 1
 
 if __name__ == "__main__":
     import safewbc_jax
-    from safewbc_jax.runner import format_summary, run_scenario
+    from safewbc_jax import format_summary, run_scenario
 
     safewbc_jax.enable_x64()
     m = run_scenario("bow", safe_sets=(TORSO_LEAN,), out="runs/bow_torso_lean", duration=4.0)

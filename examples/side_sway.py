@@ -18,10 +18,7 @@ Run it, sweep it:
 
 import jax.numpy as jnp
 
-from safewbc_jax import outputs, robot
-from safewbc_jax.safesets import SafeSet
-from safewbc_jax.scenario import Scenario
-from safewbc_jax.tasks import Task
+from safewbc_jax import SafeSet, Scenario, Task, outputs, robot
 
 AMPLITUDE = 0.06     # m
 PERIOD = 4.0         # s
@@ -57,7 +54,7 @@ SIDE_SWAY = Scenario(
 
 if __name__ == "__main__":
     import safewbc_jax
-    from safewbc_jax.runner import format_summary, run_scenario
+    from safewbc_jax import format_summary, run_scenario
 
     safewbc_jax.enable_x64()
     m = run_scenario(f"{__file__}:SIDE_SWAY", out="runs/side_sway", duration=4.0)

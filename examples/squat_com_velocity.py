@@ -25,8 +25,7 @@ the large default pole.
 
 import jax.numpy as jnp
 
-from safewbc_jax import robot, spatial
-from safewbc_jax.safesets import SafeSet
+from safewbc_jax import SafeSet, robot, spatial
 
 
 def com_velocity_xy(model, q, v):
@@ -47,7 +46,7 @@ COM_SPEED = SafeSet("com_speed", com_speed, relative_degree=1, poles=(60.0,), th
 
 if __name__ == "__main__":
     import safewbc_jax
-    from safewbc_jax.runner import format_summary, run_scenario
+    from safewbc_jax import format_summary, run_scenario
 
     safewbc_jax.enable_x64()
     m = run_scenario("squat", safe_sets=(COM_SPEED,), out="runs/squat_com_speed")

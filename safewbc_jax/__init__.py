@@ -11,88 +11,88 @@ Importing it sets two defaults for the libraries under JAX, each unless the user
 one OpenBLAS thread, and XLA:CPU's classic fusion emitters (``CPU_XLA_FLAGS``).
 """
 
-import os
+from typing import TYPE_CHECKING, Any
 
-# OpenBLAS (numpy's, and scipy's, which jaxlib's CPU LAPACK kernels call) spins worker
-# threads after each call; on a small CPU they compete with XLA's own thread pool. Measured
-# on a 2-core machine: closed-loop MJX rollouts with the JAX QP solver ran 70x slower per
-# step (71 ms against 1.1 ms at batch 2). The controller's matrices are far too small to
-# gain from threaded BLAS, so one thread is the default unless the user set it. (Only
-# effective when numpy is not imported yet; ``solvers.jax_qp.blas_threads`` sets it at
-# run time.)
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+from safewbc_jax.base.runtime import (CPU_XLA_FLAGS, add_xla_flags, enable_x64, require_x64,
+                                      use_compile_cache, use_cpu)
 
-CPU_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
-"""XLA:CPU flags this package adds to ``XLA_FLAGS`` on import, each unless ``XLA_FLAGS``
-already names it (set it there, to true, to keep XLA's default). With the classic
-emitters instead of XLA:CPU's newer MLIR fusion emitters, the closed loop of the batched
-path (arms, batch 2) compiled in 38 CPU s instead of 56 and the deployed walking
-controller started in 20 s instead of 32; the deployed step ran within 2% of its speed, the
-batched loop at 0.82-1.04 of it in noisy runs (benchmarks/README.md, "XLA:CPU's fusion
-emitters"). XLA reads ``XLA_FLAGS`` when JAX starts its CPU backend (the first JAX array
-or compile), so the setting takes effect where this package is imported before that;
-later it changes nothing. Only XLA:CPU reads these flags: a program compiled for an
-accelerator is the same."""
+# The public API: each name is imported from its module at first use (PEP 562), so that
+# ``import safewbc_jax`` stays light (the command line checks its options before JAX and
+# MuJoCo load) and no module of the package imports the package's top. "module:name" is a
+# module's attribute; a bare module path is the module itself (``robot``, ``spatial``,
+# ``outputs``: what a user's safe set or task is written with).
+_API = {
+    "Controller": "safewbc_jax.deploy.controller:Controller",
+    "Command": "safewbc_jax.deploy.controller:Command",
+    "MotorMap": "safewbc_jax.deploy.controller:MotorMap",
+    "Measurement": "safewbc_jax.control.step:Measurement",
+    "ControllerParams": "safewbc_jax.control.params:ControllerParams",
+    "Scenario": "safewbc_jax.control.scenario:Scenario",
+    "Task": "safewbc_jax.control.tasks:Task",
+    "SafeSet": "safewbc_jax.control.safesets:SafeSet",
+    "get_scenario": "safewbc_jax.scenarios:get_scenario",
+    "BatchConfig": "safewbc_jax.sim.mjx.plant:BatchConfig",
+    "BatchError": "safewbc_jax.sim.mjx.plant:BatchError",
+    "default_params": "safewbc_jax.sim.mjx.plant:default_params",
+    "run_batch": "safewbc_jax.sim.mjx.rollout:run_batch",
+    "export": "safewbc_jax.sim.mjx.rollout:export",
+    "Push": "safewbc_jax.sim.push:Push",
+    "load_at_stand": "safewbc_jax.sim.mujoco_loop:load_at_stand",
+    "run_scenario": "safewbc_jax.app.runner:run_scenario",
+    "format_summary": "safewbc_jax.app.runner:format_summary",
+    "QP": "safewbc_jax.solvers.problem:QP",
+    "SolveResult": "safewbc_jax.solvers.result:SolveResult",
+    "solve_qp": "safewbc_jax.solvers:solve_qp",
+    "load_spec": "safewbc_jax.sweeps.spec:load_spec",
+    "run_sweep": "safewbc_jax.sweeps.run:run_sweep",
+    "read_table": "safewbc_jax.sweeps.table:read_table",
+    "make_report": "safewbc_jax.sweeps.report:make_report",
+    "tune": "safewbc_jax.sweeps.tuning:tune",
+    "robot": "safewbc_jax.model.robot",
+    "spatial": "safewbc_jax.model.spatial",
+    "outputs": "safewbc_jax.control.outputs",
+}
 
-
-def add_xla_flags(flags) -> None:
-    """Append ``flags`` ("--name=value" strings) to the environment's ``XLA_FLAGS``, each
-    unless ``XLA_FLAGS`` already names it. XLA reads them when JAX starts a backend: call
-    this before the process's first JAX array or compile."""
-    have = os.environ.get("XLA_FLAGS", "")
-    named = {f.split("=", 1)[0].lstrip("-") for f in have.split()}
-    extra = [f for f in flags if f.split("=", 1)[0].lstrip("-") not in named]
-    if extra:
-        os.environ["XLA_FLAGS"] = " ".join([have.strip(), *extra]).strip()
-
-
-add_xla_flags(CPU_XLA_FLAGS)
-
-
-def enable_x64() -> None:
-    """Switch JAX to 64-bit floats for this process (``jax_enable_x64``), as the
-    controller needs. It is JAX's global setting: it affects other JAX code in the
-    process too, which is why importing the package does not do it."""
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-
-
-def require_x64(what: str) -> None:
-    """RuntimeError unless JAX's 64-bit floats are on, naming ``what`` needs them."""
-    import jax
-
-    if not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
-        raise RuntimeError(f"{what} needs JAX's 64-bit floats: call safewbc_jax.enable_x64() "
-                           "first (or set JAX_ENABLE_X64=1)")
+__all__ = ["CPU_XLA_FLAGS", "add_xla_flags", "enable_x64", "require_x64", "use_compile_cache",
+           "use_cpu", "Controller", "Command", "MotorMap", "Measurement", "ControllerParams",
+           "Scenario", "Task", "SafeSet", "get_scenario", "BatchConfig", "BatchError",
+           "default_params", "run_batch", "export", "Push", "load_at_stand", "run_scenario",
+           "format_summary", "QP", "SolveResult", "solve_qp", "load_spec", "run_sweep",
+           "read_table", "make_report", "tune", "robot", "spatial", "outputs"]
 
 
-def use_cpu() -> None:
-    """Run this process's JAX on the CPU (``jax_platforms = "cpu"``), whatever accelerator
-    and JAX plugin the machine has: the single robot's step (``safewbc run``, a deployed
-    controller) and the mujoco engine's sweep workers are CPU programs, and a CUDA backend
-    would also take most of a GPU's memory in each of those processes. JAX reads it when it
-    starts a backend: call this before the process's first JAX array or compile. A process
-    whose backend is already up on another platform raises RuntimeError."""
-    import jax
-    from jax._src import xla_bridge
+def __getattr__(name: str) -> Any:
+    if name in _API:
+        import importlib
 
-    if xla_bridge.backends_are_initialized():
-        if jax.default_backend() != "cpu":
-            raise RuntimeError("use_cpu(): JAX already runs on "
-                               f"{jax.default_backend()!r} in this process; call it before "
-                               "the first JAX array or compile")
-        return
-    jax.config.update("jax_platforms", "cpu")
+        where, _, attr = _API[name].partition(":")
+        module = importlib.import_module(where)
+        value = getattr(module, attr) if attr else module
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'safewbc_jax' has no attribute {name!r}")
 
 
-def use_compile_cache(directory: str) -> None:
-    """Keep this process's compiled XLA programs in ``directory`` (JAX's persistent
-    compilation cache) and load them from there in later processes: every program, the
-    small eager ones too (``jax_persistent_cache_min_compile_time_secs`` = 0). Those are a
-    few hundred of about 20 ms each when a controller starts; compiled again, they cost a
-    warm ``safewbc run arms`` 16 s where loading them costs 9 s (benchmarks/README.md)."""
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", directory)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+if TYPE_CHECKING:
+    from safewbc_jax.app.runner import format_summary, run_scenario
+    from safewbc_jax.control import outputs
+    from safewbc_jax.control.params import ControllerParams
+    from safewbc_jax.control.safesets import SafeSet
+    from safewbc_jax.control.scenario import Scenario
+    from safewbc_jax.control.step import Measurement
+    from safewbc_jax.control.tasks import Task
+    from safewbc_jax.deploy.controller import Command, Controller, MotorMap
+    from safewbc_jax.model import robot, spatial
+    from safewbc_jax.scenarios import get_scenario
+    from safewbc_jax.sim.mjx.plant import BatchConfig, BatchError, default_params
+    from safewbc_jax.sim.mjx.rollout import export, run_batch
+    from safewbc_jax.sim.mujoco_loop import load_at_stand
+    from safewbc_jax.sim.push import Push
+    from safewbc_jax.solvers import solve_qp
+    from safewbc_jax.solvers.problem import QP
+    from safewbc_jax.solvers.result import SolveResult
+    from safewbc_jax.sweeps.report import make_report
+    from safewbc_jax.sweeps.run import run_sweep
+    from safewbc_jax.sweeps.spec import load_spec
+    from safewbc_jax.sweeps.table import read_table
+    from safewbc_jax.sweeps.tuning import tune

@@ -7,12 +7,12 @@ against finite differences of MuJoCo's kinematics)."""
 import jax
 import jax.numpy as jnp
 
-from safewbc_jax import robot, spatial
-from safewbc_jax.chains import chain_jacobian
-from safewbc_jax.contacts import contact_jacobian, stacked_contact_jacobian
-from safewbc_jax.controller import Terms, constraint_jacobian
-from safewbc_jax.outputs import StepTerms
-from safewbc_jax.robot import Dynamics, RobotModel, _com_jacobians
+from safewbc_jax.model import robot, spatial
+from safewbc_jax.model.chains import chain_jacobian
+from safewbc_jax.model.contacts import contact_jacobian, stacked_contact_jacobian
+from safewbc_jax.control.terms import Terms, constraint_jacobian
+from safewbc_jax.control.outputs import StepTerms
+from safewbc_jax.model.robot import Dynamics, RobotModel, _com_jacobians
 
 
 def _dynamics(model, jp, jr, irot, com, acc, alpha, omega):

@@ -218,7 +218,7 @@ def pytest_collection_modifyitems(config, items):
 def ctrl_mj():
     import mujoco
 
-    from safewbc_jax import paths
+    from safewbc_jax.base import paths
 
     return mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
 
@@ -227,14 +227,14 @@ def ctrl_mj():
 def sim_mj():
     import mujoco
 
-    from safewbc_jax import paths
+    from safewbc_jax.base import paths
 
     return mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
 
 
 @pytest.fixture(scope="session")
 def rm(ctrl_mj):
-    from safewbc_jax import robot
+    from safewbc_jax.model import robot
 
     return robot.from_mujoco(ctrl_mj)
 
@@ -252,7 +252,7 @@ def random_state(m, rng, spread=0.4):
 
 
 def mj_integrate(m, q, v, dt=1.0):
-    """MuJoCo's own mj_integratePos (independent of safewbc_jax.spatial.integrate)."""
+    """MuJoCo's own mj_integratePos (independent of safewbc_jax.model.spatial.integrate)."""
     import mujoco
 
     out = np.array(q, dtype=float)
@@ -275,7 +275,7 @@ def arms_deployment(tmp_path_factory):
     """One MuJoCo + PIQP run of the arms scenario with its barrier (8 s of motion after a
     1 s settle: the fists pass their highest point at tau = 7.5 s), shared by the
     closed-loop test and the MJX consistency test: (metrics, output directory)."""
-    from safewbc_jax.runner import run_scenario
+    from safewbc_jax.app.runner import run_scenario
 
     out = tmp_path_factory.mktemp("arms_deployment")
     return run_scenario("arms", duration=8.0, settle=1.0, out=out, quiet=True), out
@@ -285,7 +285,7 @@ def arms_deployment(tmp_path_factory):
 def short_squat_deployment(tmp_path_factory):
     """One MuJoCo + PIQP run of the squat (2 s of motion after a 1 s settle), shared by the
     closed-loop test and the MJX squat consistency test: (metrics, output directory)."""
-    from safewbc_jax.runner import run_scenario
+    from safewbc_jax.app.runner import run_scenario
 
     out = tmp_path_factory.mktemp("short_squat_deployment")
     return run_scenario("squat", duration=2.0, settle=1.0, out=out, quiet=True), out
@@ -296,7 +296,7 @@ def short_walk_deployment(tmp_path_factory):
     """One MuJoCo + PIQP run of a short walk (2.2 s of walking after a 1.2 s settle: six
     steps), shared by the walking test and the MJX walking consistency test:
     (metrics, output directory)."""
-    from safewbc_jax.runner import run_scenario
+    from safewbc_jax.app.runner import run_scenario
 
     out = tmp_path_factory.mktemp("short_walk_deployment")
     return run_scenario("walk", duration=2.2, settle=1.2, out=out, quiet=True), out
@@ -307,7 +307,7 @@ def stand(sim_mj, ctrl_mj):
     """(q, v) of the controller at the ``stand`` keyframe of the simulation model."""
     import mujoco
 
-    from safewbc_jax import statemap
+    from safewbc_jax.model import statemap
 
     d = mujoco.MjData(sim_mj)
     mujoco.mj_resetDataKeyframe(sim_mj, d, sim_mj.key("stand").id)

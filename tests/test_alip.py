@@ -1,4 +1,4 @@
-"""ALIP model, foot-placement planner and swing reference (safewbc_jax.alip)."""
+"""ALIP model, foot-placement planner and swing reference (safewbc_jax.control.alip)."""
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +8,7 @@ import pytest
 import scipy.linalg
 from conftest import random_state
 
-from safewbc_jax import alip
+from safewbc_jax.control import alip
 
 H, M, G, T = 0.9, 47.228138, 9.81, 0.35
 LAM = np.sqrt(G / H)
@@ -311,7 +311,7 @@ def test_reachable_speeds_are_the_step_clip_over_T():
     """walking.reachable_speeds (what ``safewbc run walk --speed`` accepts) against the
     planner itself: on its periodic orbit at the limit speeds the step is exactly the
     clip bound STEP_X, and 5 % beyond a limit it would need a step the clip cuts off."""
-    from safewbc_jax import walking
+    from safewbc_jax.control import walking
 
     lo, hi = walking.reachable_speeds(T)
     assert (lo, hi) == pytest.approx((walking.STEP_X[0] / T, walking.STEP_X[1] / T))

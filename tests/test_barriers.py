@@ -9,9 +9,10 @@ import pytest
 import scipy.linalg
 from conftest import random_state, mj_integrate, trajectory_point
 
-from safewbc_jax import barriers as bf
-from safewbc_jax import control_step, scenarios
-from safewbc_jax.safesets import SafeSet, SafeSetError
+from safewbc_jax.control import barriers as bf
+from safewbc_jax import scenarios
+from safewbc_jax.control import step as control_step
+from safewbc_jax.control.safesets import SafeSet, SafeSetError
 
 THRESHOLD = 0.195
 
@@ -256,7 +257,7 @@ def _yaw_rate_barrier(wmax=1.5):
     """A relative-degree-1 SafeSet mixing q and v on the floating base: the world yaw rate
     of the torso plus a left-elbow term stays below wmax,
     h(q, v) = wmax - (R(quat) omega_body)_z - q_elbow v_elbow."""
-    from safewbc_jax import spatial
+    from safewbc_jax.model import spatial
 
     def h(model, q, v, threshold, domain=None):
         k, kd = model.joint_qadr("left-elbow"), model.joint_dadr("left-elbow")
@@ -361,7 +362,8 @@ def test_closed_form_terms_equal_the_rows_by_automatic_differentiation(rm, robot
     function per family (alone on a 2-core CPU: fists 7.5 s, swing foot 3.6 s; as one
     test they came to 20 s of CPU under a full suite's load, the fast tier's limit); the
     swing foot's at two headings."""
-    from safewbc_jax import robot, walking
+    from safewbc_jax.control import walking
+    from safewbc_jax.model import robot
 
     poles = jnp.asarray([2.0, 6.0])
     if family == "fists":

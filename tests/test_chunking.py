@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax.chunking import ByPlatform, chunk_layout, chunked, resolve_chunk
+from safewbc_jax.base.chunking import ByPlatform, chunk_layout, chunked, resolve_chunk
 
 
 def _impl(batched, shared):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from safewbc_jax import cli
+from safewbc_jax.app import cli
 
 SPEC = str(Path(__file__).resolve().parents[1] / "sweeps" / "kalpha_poles.toml")
 
@@ -106,7 +106,8 @@ def test_negative_push_components_as_typed(capsys, tmp_path):
 
 def test_check_run_options_defaults():
     """The defaults the run fills in, for a walking and a double-support scenario."""
-    from safewbc_jax import runner, scenarios
+    from safewbc_jax import scenarios
+    from safewbc_jax.app import runner
 
     o = runner.check_run_options("push", scenarios.get_scenario("push"))
     assert o["push"] == runner.PAPER_PUSH and o["push_at"] == runner.PUSH_AT

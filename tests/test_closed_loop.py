@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from safewbc_jax.runner import run_scenario
+from safewbc_jax.app.runner import run_scenario
 
 
 @pytest.mark.slow
@@ -55,7 +55,7 @@ def test_accumulated_metrics_match_the_logged_time_series(arms_deployment):
     of the run's logged time series: barrier minima, the ZMP margin over the motion,
     tracking RMS from TRACKING_SKIP_S on, the torque ratio, the QP counts, the loop
     residual. The same numbers summed in a different order: 1e-9 relative."""
-    from safewbc_jax.metrics import TRACKING_SKIP_S
+    from safewbc_jax.control.metrics import TRACKING_SKIP_S
 
     m, out = arms_deployment
     log = np.load(out / "log.npz")
@@ -73,9 +73,9 @@ def test_accumulated_metrics_match_the_logged_time_series(arms_deployment):
         for i in range(err.shape[1]):
             assert m["tracking_rms_components"][f"{name}[{i}]"] == pytest.approx(
                 float(np.sqrt(np.mean(err[:, i] ** 2))), rel=1e-9, abs=1e-15)
-    from safewbc_jax import robot
+    from safewbc_jax.model import robot
     import mujoco
-    from safewbc_jax import paths
+    from safewbc_jax.base import paths
 
     lim = np.asarray(robot.from_mujoco(mujoco.MjModel.from_xml_path(
         str(paths.controller_xml()))).torque_limit)

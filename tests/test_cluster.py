@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from safewbc_jax.cli import hosts_from_env, main
+from safewbc_jax.app.cli import hosts_from_env, main
 from safewbc_jax.sweeps import cluster
 
 SPEC = """

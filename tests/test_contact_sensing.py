@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from safewbc_jax.modelinfo import foot_contact_ids
+from safewbc_jax.model.modelinfo import foot_contact_ids
 from safewbc_jax.sim.mujoco_loop import ContactSensing
 
 

@@ -1,4 +1,4 @@
-"""Contact constraints (safewbc_jax.contacts) against direct evaluation, MuJoCo and scipy.
+"""Contact constraints (safewbc_jax.model.contacts) against direct evaluation, MuJoCo and scipy.
 
 References are built independently of the module under test: sole poses from MuJoCo's
 site_xpos/site_xmat, polygons from scipy's ConvexHull, sole wrenches summed by hand from
@@ -14,7 +14,7 @@ import ad_reference
 from conftest import random_state, trajectory_point
 from scipy.spatial import ConvexHull
 
-from safewbc_jax import contacts, robot
+from safewbc_jax.model import contacts, robot
 
 FEET = ("left-sole", "right-sole")
 MU, GAMMA, F_MIN = 0.7, 0.03, 15.0
@@ -22,7 +22,7 @@ MODES = ((1.0, 1.0), (1.0, 0.0), (0.0, 1.0))
 
 
 # --------------------------------------------------------------------------------------
-# helpers (independent of safewbc_jax.contacts)
+# helpers (independent of safewbc_jax.model.contacts)
 # --------------------------------------------------------------------------------------
 
 def _yaw_quat(yaw):

@@ -7,10 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax import metrics, scenarios
-from safewbc_jax.control_step import (FALL_HEIGHT, MAX_RATE, MAX_SPEED, QUAT_TOL, fallen,
+from safewbc_jax import scenarios
+from safewbc_jax.control import metrics
+from safewbc_jax.control.step import (FALL_HEIGHT, MAX_RATE, MAX_SPEED, QUAT_TOL, fallen,
                                       state_ok)
-from safewbc_jax.push import PUSH_AT, PUSH_FOR, Push, force_at
+from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR, Push, force_at
 
 
 def _state():
@@ -59,7 +60,7 @@ def test_push_window_and_one_default():
     assert np.all(force_at(p, PUSH_AT - 1e-9) == 0)
     np.testing.assert_array_equal(force_at(p, PUSH_AT), [0.0, -30.0, 0.0])
     assert np.all(force_at(p, PUSH_AT + PUSH_FOR) == 0)       # [at, at + duration)
-    from safewbc_jax import runner
+    from safewbc_jax.app import runner
     from safewbc_jax.sweeps import spec
 
     assert runner.PUSH_AT == spec.PUSH_DEFAULTS["at"] == PUSH_AT

@@ -8,8 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax import control_step, controller, scenarios
-from safewbc_jax.params import ParamsError, apply_overrides, load_overrides, to_toml
+from safewbc_jax import scenarios
+from safewbc_jax.control import step as control_step, terms as controller
+from safewbc_jax.control.params import ParamsError, apply_overrides, load_overrides, to_toml
 from safewbc_jax.solvers import reduce
 from safewbc_jax.solvers.piqp_path import PiqpSolver
 from safewbc_jax.solvers.result import FALLBACK_NONE
@@ -166,7 +167,7 @@ def test_params_stay_float64_whatever_a_user_passes():
     """Python floats in ``replace``, a TOML override or a controller's params become
     float64 arrays that are not weakly typed: a weak leaf is another program for every
     jit over the params (a controller's start-up QP compiled again, 7 s)."""
-    from safewbc_jax.deploy import Controller
+    from safewbc_jax.deploy.controller import Controller
 
     sc = scenarios.get_scenario("arms")
     p = sc.default_params()
@@ -229,7 +230,7 @@ def test_bad_start_for_barrier_rejected_before_compile(tmp_path):
     f = tmp_path / "bad.toml"
     f.write_text("[threshold]\nleft_fist = 0.195\n")  # the paper's value: unsafe start here
     t0 = time.time()
-    out = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "run", "arms", "--params",
+    out = subprocess.run([sys.executable, "-m", "safewbc_jax.app.cli", "run", "arms", "--params",
                           str(f), "--out", str(tmp_path / "o"), "--cpu", "-1"],
                          capture_output=True, text=True)
     assert out.returncode == 2

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from safewbc_jax.batch import rollout as R
+from safewbc_jax.sim.mjx import rollout as R
 
 pytestmark = pytest.mark.slow      # traces the MJX closed loop (~10-20 s a scenario)
 

@@ -1,4 +1,4 @@
-"""The deployment API (safewbc_jax.deploy): the motor map against the simulator's, start /
+"""The deployment API (safewbc_jax.deploy.controller): the motor map against the simulator's, start /
 step / reset and the counters, refused measurements, and the README example as written.
 
 One compiled squat controller (module fixture) serves most tests; a walking one checks that
@@ -10,8 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from safewbc_jax import barriers, deploy, statemap
-from safewbc_jax.deploy import Controller, Measurement, MotorMap
+from safewbc_jax.control import barriers
+from safewbc_jax.deploy import controller as deploy
+from safewbc_jax.model import statemap
+from safewbc_jax.deploy.controller import Controller, Measurement, MotorMap
 from safewbc_jax.solvers.result import failed
 from safewbc_jax.solvers.status import SolveStatus
 
@@ -38,7 +40,7 @@ def test_motor_map_matches_the_simulators_state_map(sim_mj, ctrl_mj):
     simulator's commands: to 1e-12 within the limits (the same division). Beyond them it
     clips to the published motor limits; the simulator's ctrlrange is the same figure
     printed to 10 digits (13.557993625 -> 13.55799362), hence 1e-9 relative there."""
-    from safewbc_jax import modelgen
+    from safewbc_jax.model import modelgen
 
     mm = MotorMap.build(ctrl_mj)
     acts = modelgen.load_params()["actuators"]
@@ -62,7 +64,7 @@ def test_motor_map_matches_the_simulators_state_map(sim_mj, ctrl_mj):
 
 
 def test_motor_map_refuses_figures_that_disagree_with_the_model(ctrl_mj):
-    from safewbc_jax import modelgen
+    from safewbc_jax.model import modelgen
 
     figs = modelgen.load_params()
     figs["actuators"][3] = {**figs["actuators"][3], "gear": 17.0}
@@ -236,7 +238,7 @@ def test_bad_measurement_does_not_advance_the_gait(stand):
     """Walking: the gait leaves double support at the first good step with tau >= 0 (as
     in the MuJoCo loop, touchdown and timing from the measurement that ends the step);
     a refused measurement (sole forces missing, or NaN) leaves it where it is."""
-    from safewbc_jax.walking import BOTH, LEFT
+    from safewbc_jax.control.walking import BOTH, LEFT
 
     ctl = Controller("walk", settle=1.0)
     ctl.start(*stand)
@@ -283,7 +285,8 @@ def test_motor_map_needs_only_the_installed_package_files(monkeypatch):
     reads the figures shipped in safewbc_jax/models, not modelgen's search for the
     figures to regenerate the models from (which found nothing there and broke
     `safewbc run` after a non-editable install)."""
-    from safewbc_jax import modelgen, paths
+    from safewbc_jax.base import paths
+    from safewbc_jax.model import modelgen
 
     def nowhere(*a, **k):
         raise FileNotFoundError("digit_v3_parameters.json not found (test)")
@@ -300,8 +303,9 @@ def test_installed_package_finds_its_files(tmp_path):
     import subprocess
     import sys
 
-    code = ("import safewbc_jax, json; from safewbc_jax import deploy, paths, scenarios; "
-            "mm = deploy.MotorMap.build(); scenarios.get_scenario('walk'); "
+    code = ("import safewbc_jax, json; from safewbc_jax import scenarios; "
+            "from safewbc_jax.base import paths; from safewbc_jax.deploy import controller; "
+            "mm = controller.MotorMap.build(); scenarios.get_scenario('walk'); "
             "print(json.dumps([safewbc_jax.__file__, str(paths.figures_json()), len(mm.names)]))")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                          text=True)

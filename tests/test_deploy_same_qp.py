@@ -16,9 +16,10 @@ import jax
 import numpy as np
 import pytest
 
-from safewbc_jax import control_step, spatial, walking
-from safewbc_jax.deploy import Controller, Measurement
-from safewbc_jax.qp_types import FIELDS
+from safewbc_jax.control import step as control_step, walking
+from safewbc_jax.model import spatial
+from safewbc_jax.deploy.controller import Controller, Measurement
+from safewbc_jax.solvers.problem import FIELDS
 from safewbc_jax.solvers import reduce
 
 N_STATES = 100

@@ -44,8 +44,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax import chunking
-from safewbc_jax.qp_types import QP
+from safewbc_jax.base import chunking
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers import (INFEASIBLE, MAX_ITER, SOLVED, SolveStatus, jax_qp, reduce,
                                  solve_qp)
 from safewbc_jax.solvers.piqp_path import PiqpSolver, residuals, solve_qp_piqp

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from safewbc_jax import kernels
+from safewbc_jax.deploy import kernels
 
 HLO = """HloModule m
 

@@ -1,5 +1,5 @@
-"""The package's layout: no import cycle between its modules, no module over about 600
-lines without a reason stated at its top, and importing it changes no JAX setting."""
+"""The package's layout: folders by layer, each importing only the layers below it; no
+import cycle between its modules; and importing it changes no JAX setting."""
 
 import ast
 import subprocess
@@ -8,7 +8,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "safewbc_jax"
-MAX_LINES = 650   # "about 600"; a longer module says why in a line starting "Size:"
+# the package's folders, lowest layer first (docs/index.md, "What is here")
+LAYERS = ("base", "model", "solvers", "control", "scenarios", "deploy", "ui", "sim", "sweeps",
+          "app")
 
 
 def _module_name(path: Path) -> str:
@@ -66,25 +68,63 @@ def test_no_import_cycle():
             visit(m, [m])
     assert not cycles, f"import cycles: {cycles}"
     # the check sees the imports it must: scenarios imports walking, walking the types
-    assert "safewbc_jax.walking" in graph["safewbc_jax.scenarios"]
-    assert "safewbc_jax.scenario" in graph["safewbc_jax.walking"]
+    assert "safewbc_jax.control.walking" in graph["safewbc_jax.scenarios"]
+    assert "safewbc_jax.control.scenario" in graph["safewbc_jax.control.walking"]
 
 
-def test_module_sizes():
-    long = []
-    for f in sorted(PKG.rglob("*.py")):
-        text = f.read_text()
-        n = text.count("\n")
-        if n > MAX_LINES and "\nSize:" not in text[:3000]:
-            long.append(f"{f.relative_to(ROOT)} ({n} lines)")
-    assert not long, f"modules over {MAX_LINES} lines without a stated reason: {long}"
+def _layer(module: str) -> int | None:
+    parts = module.split(".")
+    return LAYERS.index(parts[1]) if len(parts) > 1 and parts[1] in LAYERS else None
+
+
+def test_each_folder_imports_only_the_layers_below_it():
+    """A module imports its own layer's modules and those of lower layers, never a higher
+    layer's nor the package's top (``safewbc_jax/__init__.py``, the public API, which
+    imports from them), lazily inside a function included."""
+    files = sorted(PKG.rglob("*.py"))
+    modules = {_module_name(f) for f in files}
+    unknown = sorted({m.split(".")[1] for m in modules if "." in m} - set(LAYERS))
+    assert not unknown, f"folders or modules outside the layers {LAYERS}: {unknown}"
+    wrong = []
+    for f in files:
+        me = _module_name(f)
+        if me == "safewbc_jax":
+            continue
+        for d in _imports(f, modules):
+            if me.startswith(d + "."):
+                continue        # a parent package, imported before its submodules
+            if _layer(d) > _layer(me):
+                wrong.append(f"{me} imports {d}")
+        for node in ast.walk(ast.parse(f.read_text())):   # the top: its API, not a folder
+            if isinstance(node, ast.Import) and any(a.name == "safewbc_jax" for a in node.names):
+                wrong.append(f"{me} imports safewbc_jax")
+            if isinstance(node, ast.ImportFrom) and node.module == "safewbc_jax":
+                wrong += [f"{me} imports safewbc_jax.{a.name}" for a in node.names
+                          if f"safewbc_jax.{a.name}" not in modules]
+    assert not wrong, "imports against the layers: " + "; ".join(wrong)
+
+
+def test_the_top_holds_the_api_and_folders():
+    top = sorted(p.name for p in PKG.glob("*.py"))
+    assert top == ["__init__.py"], top
+    folders = sorted(p.name for p in PKG.iterdir() if p.is_dir() and p.name != "__pycache__")
+    assert folders == sorted(LAYERS), folders
+
+
+def test_the_public_api_resolves():
+    import safewbc_jax
+
+    assert set(safewbc_jax._API) <= set(safewbc_jax.__all__)
+    for name in safewbc_jax.__all__:
+        assert getattr(safewbc_jax, name) is not None, name
 
 
 def test_import_changes_no_jax_setting_and_the_model_asks_for_x64():
     code = ("import jax, safewbc_jax\n"
             "print('x64', jax.config.jax_enable_x64)\n"
             "import mujoco\n"
-            "from safewbc_jax import paths, robot\n"
+            "from safewbc_jax.base import paths\n"
+            "from safewbc_jax.model import robot\n"
             "m = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))\n"
             "try:\n"
             "    robot.from_mujoco(m)\n"
@@ -102,12 +142,14 @@ def test_import_changes_no_jax_setting_and_the_model_asks_for_x64():
     assert lines[2] == "nv 36 True"
 
 
-def test_every_module_is_in_the_what_is_here_table():
-    """docs/index.md's "What is here" names every module of the package (by its file name,
-    or its folder for solvers/ and sweeps/), so that the map stays true as modules come."""
+def test_every_folder_and_module_is_in_the_what_is_here_table():
+    """docs/index.md's "What is here" has one row per folder of the package, in the layers'
+    order, and names each of its modules, so that the map stays true as modules come."""
     text = (ROOT / "docs" / "index.md").read_text()
     table = text[text.index("## What is here"):].split("\n## ", 1)[0]
+    rows = [line.split("`")[1] for line in table.splitlines()
+            if line.startswith("| `safewbc_jax/")]
+    assert rows == [f"safewbc_jax/{f}/" for f in LAYERS], rows
     missing = [str(p.relative_to(ROOT)) for p in sorted(PKG.rglob("*.py"))
-               if p.name != "__init__.py" and f"`{p.name}`" not in table
-               and f"/{p.name}`" not in table and f"`safewbc_jax/{p.parent.name}/`" not in table]
+               if p.name != "__init__.py" and f"`{p.name}`" not in table]
     assert not missing, f"not in docs/index.md's 'What is here': {missing}"

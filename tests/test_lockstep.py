@@ -17,7 +17,7 @@ N_STEPS = 1150         # 1 s standing (the reference blend), 0.15 s of the arms 
 @pytest.fixture(scope="module")
 def loop():
     from safewbc_jax import scenarios
-    from safewbc_jax.deploy import Controller
+    from safewbc_jax.deploy.controller import Controller
     from safewbc_jax.sim.lockstep import Lockstep
     from safewbc_jax.sim.mujoco_loop import SimRobot
 
@@ -34,7 +34,7 @@ def loop():
 def _task(ctl, sim, seed, p1, push_y):
     import dataclasses
 
-    from safewbc_jax.push import Push
+    from safewbc_jax.sim.push import Push
 
     poles = {**ctl.params.poles, "left_fist": np.array([p1, 10.0])}
     params = dataclasses.replace(ctl.params, poles=poles)
@@ -43,7 +43,7 @@ def _task(ctl, sim, seed, p1, push_y):
 
 
 def _single(ctl, sim, task):
-    from safewbc_jax import metrics
+    from safewbc_jax.control import metrics
     from safewbc_jax.sim.mujoco_loop import rollout
 
     sim.reset(task[2])
@@ -105,7 +105,7 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     the torque each lane holds next exactly; the solve records within 1e-12 relative /
     1e-9 absolute (X = x0 + N u is one batched product against one per lane: BLAS may
     round differently; the torques are N's identity block and come out exactly)."""
-    from safewbc_jax.deploy import Controller
+    from safewbc_jax.deploy.controller import Controller
 
     ctl, sim, lock = loop
     sim.reset()

@@ -1,4 +1,4 @@
-"""The batched path (safewbc_jax.batch.rollout) against the deployment path (MuJoCo C +
+"""The batched path (safewbc_jax.sim.mjx.rollout) against the deployment path (MuJoCo C +
 PIQP, safewbc_jax.sim.mujoco_loop): the same scenario and parameters through both.
 
 * squat, 2 s of motion after a 1 s settle: CoM trajectories within 5 mm;
@@ -23,8 +23,8 @@ import jax
 import numpy as np
 import pytest
 
-from safewbc_jax import barriers
-from safewbc_jax.batch.rollout import BatchConfig, BatchError, Push, default_params, run_batch
+from safewbc_jax.control import barriers
+from safewbc_jax.sim.mjx.rollout import BatchConfig, BatchError, Push, default_params, run_batch
 
 SETTLE = 1.0
 ARMS_S = 8.0

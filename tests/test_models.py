@@ -10,8 +10,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from safewbc_jax import chains, modelgen, paths, statemap
-from safewbc_jax.modelinfo import model_info, sim_loop_residual
+from safewbc_jax.base import paths
+from safewbc_jax.model import chains, modelgen, statemap
+from safewbc_jax.model.modelinfo import model_info, sim_loop_residual
 
 PARAMS = json.loads((paths.models_dir() / "digit_v3_parameters.json").read_text())
 
@@ -210,7 +211,7 @@ def test_collision_filter_only_soles_on_floor_and_leg_on_leg(sim_mj):
 
 
 def test_model_loads_in_mjx(sim_mj):
-    from safewbc_jax.mjx_import import import_mjx
+    from safewbc_jax.sim.mjx.imports import import_mjx
 
     mjx = import_mjx()
     mx = mjx.put_model(sim_mj)
@@ -228,7 +229,7 @@ def test_state_map_and_ctrl_scaling(sim_mj, ctrl_mj):
 
 
 def test_model_info_cli_json():
-    out = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "model-info", "--json"],
+    out = subprocess.run([sys.executable, "-m", "safewbc_jax.app.cli", "model-info", "--json"],
                          capture_output=True, text=True, check=True)
     info = json.loads(out.stdout.strip().splitlines()[-1])
     for key in ("sim_nq", "sim_nv", "ctrl_nv", "nu", "mass_kg", "loop_residual_m", "foot_height_m"):

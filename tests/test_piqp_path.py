@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers.piqp_path import PiqpSolver, residuals, solve_qp_piqp
 from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED,
                                         NOT_ATTEMPTED, SolveResult)

@@ -1,4 +1,4 @@
-"""The batched path's "mixed" precision (``safewbc_jax/precision.py``: MJX physics and the
+"""The batched path's "mixed" precision (``safewbc_jax/control/precision.py``: MJX physics and the
 interior point in float32, the elimination and the polish in float64) against float64.
 
 On the recorded QPs the mixed solve must give float64's torques: its float64 polish solves
@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax import precision
-from safewbc_jax.qp_types import QP
+from safewbc_jax.control import precision
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers import SOLVED, jax_qp
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,7 +67,7 @@ def test_mixed_solve_gives_float64_torques_on_every_recorded_qp():
 
 
 def test_precision_is_validated():
-    from safewbc_jax.batch.rollout import BatchConfig, BatchError, plant
+    from safewbc_jax.sim.mjx.rollout import BatchConfig, BatchError, plant
 
     with pytest.raises(BatchError, match="BatchConfig.precision = 'half'"):
         plant(BatchConfig("arms", precision="half"))
@@ -79,8 +79,8 @@ MIXED_CHILD = textwrap.dedent("""
     import json, sys
     import numpy as np
     import safewbc_jax
-    from safewbc_jax.batch.rollout import BatchConfig, default_params, run_batch
-    from safewbc_jax.push import Push
+    from safewbc_jax.sim.mjx.rollout import BatchConfig, default_params, run_batch
+    from safewbc_jax.sim.push import Push
 
     safewbc_jax.enable_x64()
     job, out = json.loads(sys.argv[1]), sys.argv[2]
@@ -219,7 +219,7 @@ def test_memory_bytes_writes_nothing_to_the_compilation_cache(monkeypatch, tmp_p
     test checks). The same program jitted outside memory_bytes is written, so the cache
     is live in this test."""
     from jax._src import compilation_cache
-    from safewbc_jax.batch import rollout as R
+    from safewbc_jax.sim.mjx import rollout as R
 
     def small_program(x):
         return jnp.linalg.cholesky(x @ x.T + jnp.eye(x.shape[0])).sum()
@@ -256,7 +256,7 @@ def test_run_batch_calls_the_program_memory_bytes_and_export_lower(monkeypatch):
     a weakly typed scalar is another program, which made the accelerator benchmark
     compile every batch twice (memory, then run). Intercepted at the call, so nothing
     compiles."""
-    from safewbc_jax.batch import rollout as R
+    from safewbc_jax.sim.mjx import rollout as R
 
     class Called(Exception):
         pass

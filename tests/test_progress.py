@@ -1,4 +1,4 @@
-"""The progress display (safewbc_jax/progress.py) of ``safewbc run``, ``sweep`` and
+"""The progress display (safewbc_jax/ui/progress.py) of ``safewbc run``, ``sweep`` and
 ``tune-poles``: phases, rate and ETA, a bounded number of lines off a terminal, nothing
 with quiet; and run_sweep's bar with a fake executor. No JAX compile, no closed loop."""
 
@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from safewbc_jax.progress import Progress
+from safewbc_jax.ui.progress import Progress
 
 
 class FakeClock:
@@ -151,7 +151,7 @@ class FakeExecutor:
 
 
 def test_run_sweep_bar_reports_the_rollouts(spec, tmp_path, monkeypatch):
-    from safewbc_jax import progress as progress_mod
+    from safewbc_jax.ui import progress as progress_mod
     from safewbc_jax.sweeps.run import run_sweep
 
     clock = FakeClock()
@@ -211,7 +211,7 @@ def test_run_sweep_quiet_and_progress_callable(spec, tmp_path):
 @pytest.mark.parametrize("argv", [["run", "squat"], ["sweep", "s.toml", "--out", "d"],
                                   ["tune-poles", "s.toml", "--out", "p.toml"]])
 def test_cli_quiet_flag(argv):
-    from safewbc_jax.cli import build_parser
+    from safewbc_jax.app.cli import build_parser
 
     ap = build_parser()
     assert ap.parse_args(argv).quiet is False
@@ -228,7 +228,7 @@ def test_real_terminal_of_unknown_size_gets_a_bar(tmp_path):
 
     script = tmp_path / "demo.py"
     script.write_text(
-        "from safewbc_jax.progress import Progress\n"
+        "from safewbc_jax.ui.progress import Progress\n"
         "p = Progress('[safewbc] squat', unit='steps', phase='compiling')\n"
         "p.update_to(0, 'compiling', 300)\n"
         "for k in range(300):\n"

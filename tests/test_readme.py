@@ -69,7 +69,7 @@ def test_python_block(i):
 
 
 def test_safewbc_commands_parse(capsys):
-    from safewbc_jax.cli import _join_dash_values, build_parser
+    from safewbc_jax.app.cli import _join_dash_values, build_parser
 
     parser = build_parser()
     written = set()                      # --out of the commands before

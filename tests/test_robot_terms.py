@@ -8,7 +8,7 @@ import pytest
 import ad_reference
 from conftest import mj_integrate, random_state, trajectory_point
 
-from safewbc_jax import chains, robot, spatial
+from safewbc_jax.model import chains, robot, spatial
 
 N_STATES = 20
 FRAMES = ("left-sole", "right-sole", "left-fist", "right-fist", "torso")

@@ -7,9 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from safewbc_jax import metrics
-from safewbc_jax.batch.rollout import BatchConfig
-from safewbc_jax.runspec import RunSpec
+from safewbc_jax.control import metrics
+from safewbc_jax.sim.mjx.rollout import BatchConfig
+from safewbc_jax.sim.runspec import RunSpec
 from safewbc_jax.sim.mujoco_loop import RunConfig
 from safewbc_jax.sweeps.spec import parse_spec
 

@@ -10,11 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safewbc_jax import barriers, control_step, deploy, outputs, safesets, scenarios
-from safewbc_jax.params import apply_overrides
-from safewbc_jax.safesets import SafeSet, SafeSetError
-from safewbc_jax.scenario import Scenario
-from safewbc_jax.tasks import Task
+from safewbc_jax import scenarios
+from safewbc_jax.control import barriers, step as control_step, outputs, safesets
+from safewbc_jax.deploy import controller as deploy
+from safewbc_jax.control.params import apply_overrides
+from safewbc_jax.control.safesets import SafeSet, SafeSetError
+from safewbc_jax.control.scenario import Scenario
+from safewbc_jax.control.tasks import Task
 
 ROOT = Path(__file__).resolve().parents[1]
 LEAN = f"{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"
@@ -33,9 +35,9 @@ def test_load_from_a_file_and_its_errors(tmp_path):
     with pytest.raises(SafeSetError, match="has no 'NOPE'; SafeSets there: TORSO_LEAN"):
         safesets.load(LEAN.replace("TORSO_LEAN", "NOPE"))
     f = tmp_path / "mine.py"
-    f.write_text("from safewbc_jax.safesets import SafeSet\nX = 3\n"
+    f.write_text("from safewbc_jax.control.safesets import SafeSet\nX = 3\n"
                  "def make():\n    return SafeSet('mine', lambda m, q, c, d: c - q[0])\n")
-    with pytest.raises(SafeSetError, match="X is a int, not a safewbc_jax.safesets.SafeSet"):
+    with pytest.raises(SafeSetError, match="X is a int, not a safewbc_jax.control.safesets.SafeSet"):
         safesets.load(f"{f}:X")
     assert safesets.load(f"{f}:make").name == "mine"     # a factory works too
     bad = tmp_path / "broken.py"
@@ -64,7 +66,7 @@ def test_a_safe_set_is_one_object_in_the_scenario_and_its_params():
 
 
 def test_run_refuses_a_bad_safe_set_before_compiling(capsys):
-    from safewbc_jax.cli import main
+    from safewbc_jax.app.cli import main
 
     # --cpu -1: no pinning (else the CLI pins this whole test process to one core)
     assert main(["run", "bow", "--cpu", "-1", "--safe-set", "examples/none.py:X"]) == 2
@@ -110,7 +112,7 @@ def test_theorem_1_is_checked_for_user_safe_sets(rm, stand):
     p = lean.default_params()
     deploy.check_barrier_poles(rm, lean, p, q, jnp.zeros(rm.nv))   # at rest: any poles
     # the torso pitching forward at 1 rad/s, 0.9 rad from its limit: p_1 >= 1 / 0.9
-    from safewbc_jax import spatial
+    from safewbc_jax.model import spatial
 
     h0 = lambda qq: lean.barriers[0].h(rm, qq, 0.0)  # noqa: E731  (= -pitch)
     j = spatial.tangent_jacobian(h0, q, rm.nv)
@@ -146,7 +148,7 @@ def test_a_new_task_is_one_object_and_adds_exactly_its_cost(rm, ctrl_mj, stand):
     plus = Scenario("squat_fist", base.tasks + (extra,), duration=base.duration)
     params = plus.default_params()
     assert float(params.kp["fist_pos"][0]) == 50.0 and float(params.weight["fist_pos"][2]) == 2.0
-    from safewbc_jax import controller
+    from safewbc_jax.control import terms as controller
     run = dict(tau=jnp.asarray(0.5), in_contact=jnp.ones(2))
 
     @jax.jit

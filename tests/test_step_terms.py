@@ -8,7 +8,9 @@ import pytest
 import ad_reference
 from conftest import random_state
 
-from safewbc_jax import controller, robot, scenarios
+from safewbc_jax import scenarios
+from safewbc_jax.control import terms as controller
+from safewbc_jax.model import robot
 
 
 @pytest.fixture(scope="module")

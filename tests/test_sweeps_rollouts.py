@@ -1,4 +1,4 @@
-"""``safewbc sweep`` end to end with the real batched closed loop (safewbc_jax.batch.rollout):
+"""``safewbc sweep`` end to end with the real batched closed loop (safewbc_jax.sim.mjx.rollout):
 kill-safety, resume, determinism and the same table on two CPU devices.
 
 Every rollout here runs in a subprocess (a sweep to kill, a process with two host
@@ -66,7 +66,7 @@ def sweep_env(devices: int = 1) -> dict:
 def sweep_cmd(spec: Path, out: Path) -> list:
     # the mjx engine unless a test appends another --engine (the last one counts): "auto"
     # picks mujoco on a CPU
-    return [sys.executable, "-m", "safewbc_jax.cli", "sweep", str(spec), "--out", str(out),
+    return [sys.executable, "-m", "safewbc_jax.app.cli", "sweep", str(spec), "--out", str(out),
             "--batch", str(BATCH), "--engine", "mjx"]
 
 
@@ -79,7 +79,7 @@ import sys
 import safewbc_jax
 safewbc_jax.enable_x64()
 safewbc_jax.use_compile_cache(sys.argv[2])
-from safewbc_jax.batch.rollout import BatchConfig, compiled_text
+from safewbc_jax.sim.mjx.rollout import BatchConfig, compiled_text
 from safewbc_jax.sweeps.spec import load_spec
 spec = load_spec(sys.argv[3])
 open(sys.argv[1], "w").write(compiled_text(BatchConfig.of(spec.run), int(sys.argv[4])))
@@ -242,7 +242,7 @@ def test_notebook_runs_in_small_configuration(tmp_path):
     assert len(tuning["generations"]) == 2 and tuning["used"] == 4
     assert 2.0 <= best["poles.left_fist.p1"] <= 40.0 and 0.5 <= best["gain_scale.arms"] <= 2.0
     assert tuning["validation"]["n"] == 2
-    from safewbc_jax.params import load_overrides
+    from safewbc_jax.control.params import load_overrides
 
     tuned = load_overrides(tmp_path / "tuned_poles.toml")
     assert tuned["poles"]["left_fist"][0] == pytest.approx(best["poles.left_fist.p1"])
@@ -507,7 +507,7 @@ def test_ray_sweeps_give_the_one_process_tables_also_after_a_killed_worker(
 def test_a_second_host_with_another_batch_is_refused(mujoco_sweeps, capsys):
     """A host started on the same folder with another --batch (here a finished sweep's,
     host 1 of 2) refuses with the reason and leaves the first plan as it was."""
-    from safewbc_jax.cli import main
+    from safewbc_jax.app.cli import main
 
     d = mujoco_sweeps["d"]
     before = (d / table_mod.MANIFEST).read_bytes()

@@ -64,7 +64,9 @@ def test_kalpha_poles_spec_reaches_the_barrier(stand, ctrl_mj):
     import jax
     import jax.numpy as jnp
 
-    from safewbc_jax import control_step, robot, scenarios
+    from safewbc_jax import scenarios
+    from safewbc_jax.control import step as control_step
+    from safewbc_jax.model import robot
 
     spec = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
     model = robot.from_mujoco(ctrl_mj)
@@ -176,7 +178,7 @@ def test_cli_rejects_bad_spec_before_compiling(tmp_path):
     """The CLI stops on a bad spec within seconds (no compile), exit status 2, one line."""
     bad = tmp_path / "bad.toml"
     bad.write_text('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist.p2" = [4.0, -1.0]\n')
-    r = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "sweep", str(bad), "--out",
+    r = subprocess.run([sys.executable, "-m", "safewbc_jax.app.cli", "sweep", str(bad), "--out",
                         str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert 'grid."poles.left_fist.p2" = [4.0, -1.0]: pole -1.0 is not > 0' in r.stderr
@@ -226,7 +228,7 @@ def test_push_and_perturbations(tmp_path):
     assert push.at.shape == push.duration.shape == (len(vals),)
     import mujoco
 
-    from safewbc_jax import paths
+    from safewbc_jax.base import paths
     m = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
     std = inputs.velocity_std(s, m)
     assert std.shape == (m.nv,) and np.all(std[:3] == 0.01) and np.all(std[3:] == 0.0)
@@ -360,7 +362,7 @@ def test_report_objective_uses_the_spec_weights(tmp_path):
 
 
 def test_cli_sweep_help_lists_options():
-    r = subprocess.run([sys.executable, "-m", "safewbc_jax.cli", "sweep", "--help"],
+    r = subprocess.run([sys.executable, "-m", "safewbc_jax.app.cli", "sweep", "--help"],
                        capture_output=True, text=True, timeout=120,
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 0
@@ -425,7 +427,7 @@ def test_auto_batch_on_the_cpu_and_on_resume(tmp_path):
     rollout.memory_model; benchmarks/accelerator.py exercises that model on the CPU.)"""
     import json
 
-    from safewbc_jax.cli import _batch_arg
+    from safewbc_jax.app.cli import _batch_arg
     from safewbc_jax.sweeps.sizing import auto_batch
     from safewbc_jax.sweeps.table import MANIFEST
 

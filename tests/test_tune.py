@@ -243,7 +243,7 @@ def test_tuner_end_to_end_resume_and_report(tmp_path):
     validates it on held-out draws, writes a params file `safewbc run` reads; a run
     interrupted in generation 4 resumes without rerunning generations 1-3 and ends with
     the same result as an uninterrupted run; so does a run with another chunk size."""
-    from safewbc_jax.params import load_overrides
+    from safewbc_jax.control.params import load_overrides
     from safewbc_jax.sweeps.report import make_report
 
     spec = spec_from(tmp_path, SPEC)

@@ -38,7 +38,7 @@ objective = ["torque_ratio_max"]   # tracking RMS counts from 0.5 s of motion on
 
 
 def tune_cmd(spec, out, *extra):
-    return [sys.executable, "-m", "safewbc_jax.cli", "tune", str(spec), "--out", str(out),
+    return [sys.executable, "-m", "safewbc_jax.app.cli", "tune", str(spec), "--out", str(out),
             "--batch", "2", *extra]
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from safewbc_jax import scenarios
-from safewbc_jax.scenario import Scenario
+from safewbc_jax.control.scenario import Scenario
 from test_sweeps_rollouts import sweep_env
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,7 +32,7 @@ def test_a_user_scenario_loads_by_reference_and_bad_ones_are_named(tmp_path):
     lean = f"{ROOT / 'examples' / 'bow_torso_lean.py'}:TORSO_LEAN"
     assert [b.name for b in scenarios.get_scenario(REF, True, (lean,)).barriers] == \
         ["com_side", "torso_lean"]
-    with pytest.raises(ValueError, match="COM_SIDE is a SafeSet, not a safewbc_jax.scenario.Scenario"):
+    with pytest.raises(ValueError, match="COM_SIDE is a SafeSet, not a safewbc_jax.control.scenario.Scenario"):
         scenarios.get_scenario(f"{EXAMPLE}:COM_SIDE")
     with pytest.raises(ValueError, match="has no 'NOPE'; Scenarios there: SIDE_SWAY"):
         scenarios.get_scenario(f"{EXAMPLE}:NOPE")
@@ -43,8 +43,8 @@ def test_a_user_scenario_loads_by_reference_and_bad_ones_are_named(tmp_path):
 
 
 def test_cli_and_batch_refuse_a_bad_scenario_file_before_compiling(capsys, tmp_path):
-    from safewbc_jax.batch.rollout import BatchConfig, BatchError, plant
-    from safewbc_jax.cli import main
+    from safewbc_jax.sim.mjx.rollout import BatchConfig, BatchError, plant
+    from safewbc_jax.app.cli import main
 
     assert main(["run", "examples/none.py:X", "--cpu", "-1"]) == 2
     assert "examples/none.py does not exist" in capsys.readouterr().err
@@ -61,7 +61,7 @@ def test_batch_config_takes_a_scenario_object():
     """``BatchConfig(scenario=...)`` takes the Scenario object itself, as ``Controller``
     does: its plant holds the object itself, with the tasks, safe sets and start of its
     "FILE.py:NAME" reference's, and the params follow the object's safe sets."""
-    from safewbc_jax.batch.rollout import BatchConfig, default_params, plant
+    from safewbc_jax.sim.mjx.rollout import BatchConfig, default_params, plant
 
     obj = scenarios.get_scenario(REF)
     by_obj, by_ref = plant(BatchConfig(obj)), plant(BatchConfig(REF))
@@ -129,7 +129,7 @@ def user_runs(tmp_path_factory):
     # the CPU paths run where the environment asks JAX for CUDA, which this machine cannot
     # start: they select the CPU themselves (safewbc_jax.use_cpu; tests/test_cpu_platform.py)
     cpu_env = {**env, "JAX_PLATFORMS": "cuda"}
-    cli = [sys.executable, "-m", "safewbc_jax.cli"]
+    cli = [sys.executable, "-m", "safewbc_jax.app.cli"]
     sweep = cli + ["sweep", "sway.toml", "--batch", "2", "--quiet"]
     procs = {
         "run": subprocess.Popen(cli + ["run", "side_sway.py:SIDE_SWAY", "--duration", "1.6",

@@ -1,4 +1,4 @@
-"""The walking domain (safewbc_jax.walking): outputs selected by the stance side, the gait's
+"""The walking domain (safewbc_jax.control.walking): outputs selected by the stance side, the gait's
 domain switching, the passive stance ankle and the contact mode in the QP, the swing leg's
 rigid-spring velocity, and a short walk in MuJoCo."""
 
@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 from conftest import random_state
 
-from safewbc_jax import chains, controller, scenarios, spatial, walking
-from safewbc_jax.outputs import StepTerms
+from safewbc_jax import scenarios
+from safewbc_jax.control import terms as controller, walking
+from safewbc_jax.model import chains, spatial
+from safewbc_jax.control.outputs import StepTerms
 
 LEFT, RIGHT, BOTH = walking.LEFT, walking.RIGHT, walking.BOTH
 
@@ -277,7 +279,7 @@ def test_walking_zmp_margin_is_the_stance_sole_rectangle(short_walk_deployment, 
     the metric on the level plane through the sole origin, and the stance sole tilts by
     milliradians. The hull of both soles (the metric before the fix, one sole in the air)
     differs from it by more than 5 mm at some steps, so this test sees that mistake."""
-    from safewbc_jax import contacts, statemap
+    from safewbc_jax.model import contacts, statemap
 
     _, tmp_path = short_walk_deployment
     log = np.load(tmp_path / "log.npz")

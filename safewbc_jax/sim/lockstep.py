@@ -37,8 +37,8 @@ import time
 import jax
 import numpy as np
 
-from safewbc_jax import metrics
-from safewbc_jax.deploy import Controller
+from safewbc_jax.control import metrics
+from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.sim.mujoco_loop import SimRobot
 

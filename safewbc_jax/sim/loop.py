@@ -25,10 +25,10 @@ from typing import Callable, NamedTuple
 import jax
 import numpy as np
 
-from safewbc_jax import metrics
-from safewbc_jax.control_step import fallen
-from safewbc_jax.modelinfo import loop_residual
-from safewbc_jax.push import force_at
+from safewbc_jax.control import metrics
+from safewbc_jax.control.step import fallen
+from safewbc_jax.model.modelinfo import loop_residual
+from safewbc_jax.sim.push import force_at
 
 
 class LaneStep(NamedTuple):

@@ -1,5 +1,5 @@
 """The deployment loop: MuJoCo (C) physics of ``models/scene.xml`` around the deployable
-controller (``safewbc_jax.deploy.Controller``), as it would run on the robot.
+controller (``safewbc_jax.deploy.controller.Controller``), as it would run on the robot.
 
 The loop is ``sim.loop.simulate`` with one lane. Each control step: sense (``SimRobot``:
 MjData -> ``deploy.Measurement``, the controller's (q, v) through the StateMap, the soles'
@@ -19,12 +19,14 @@ from functools import partial
 import jax
 import numpy as np
 
-from safewbc_jax import metrics, paths, robot, statemap
-from safewbc_jax.deploy import Controller, Measurement
-from safewbc_jax.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
-from safewbc_jax.params import ControllerParams
-from safewbc_jax.push import Push
-from safewbc_jax.runspec import RunSpec
+from safewbc_jax.base import paths
+from safewbc_jax.control import metrics
+from safewbc_jax.model import robot, statemap
+from safewbc_jax.deploy.controller import Controller, Measurement
+from safewbc_jax.model.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
+from safewbc_jax.control.params import ControllerParams
+from safewbc_jax.sim.push import Push
+from safewbc_jax.sim.runspec import RunSpec
 from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.solvers.result import fallback_name
 
@@ -228,7 +230,7 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
     ms, model, d = sim.ms, sim.model, sim.d
     scenario, walking = ctl.scenario, ctl.walking
     if walking:
-        from safewbc_jax.walking import diagnostics as walking_diag
+        from safewbc_jax.control.walking import diagnostics as walking_diag
 
         diag_fn = jax.jit(partial(walking_diag, model))
     names = [o.name for o in scenario.outputs]

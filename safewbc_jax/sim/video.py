@@ -11,7 +11,7 @@ def render_video(log: dict, path: str, width: int = 640, height: int = 480) -> N
     import imageio.v3 as iio
     import mujoco
 
-    from safewbc_jax import paths
+    from safewbc_jax.base import paths
 
     m = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
     d = mujoco.MjData(m)

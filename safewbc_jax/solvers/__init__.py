@@ -86,7 +86,7 @@ def _as_qp(P, q, G, h, A, b, lb, ub, soft):
     the shapes qpsolvers also accepts are normalised as it does: a 1-D G or A is one row,
     a scalar h or b one entry, a vector of shape (1, k) or (k, 1) flat. Every mismatch is
     a ValueError naming the argument."""
-    from safewbc_jax.qp_types import QP
+    from safewbc_jax.solvers.problem import QP
 
     if (G is None) != (h is None):
         raise ValueError("G and h must be given together")
@@ -189,7 +189,7 @@ def _jax(qp, fallback, structure, nv, nu, dtype, settings):
     if structure not in ("auto", "controller", "generic"):
         raise ValueError(f"structure must be 'auto', 'controller' or 'generic', got {structure!r}")
     if dtype is None or jnp.dtype(dtype) == jnp.float64:
-        from safewbc_jax import require_x64
+        from safewbc_jax.base.runtime import require_x64
 
         require_x64("solve_qp(solver='jax') in float64 (dtype=float32 runs without it)")
     if (nv is None) != (nu is None):

@@ -39,9 +39,10 @@ def blas_threads(n: int = 1):
     numpy's) to ``n`` threads inside the block; the previous counts are restored after.
 
     Why: on a small CPU, OpenBLAS worker threads left spinning after a LAPACK call compete
-    with XLA's thread pool; measured here (2 cores): a batch of controller QPs took 16 ms
-    per QP instead of 0.2 ms. Setting OPENBLAS_NUM_THREADS=1 before numpy is imported does
-    the same for a whole process. A no-op where no OpenBLAS is found."""
+    with XLA's thread pool, and a batch of controller QPs ran about 80 times slower
+    (benchmarks/README.md, "Figures behind design choices"). Setting OPENBLAS_NUM_THREADS=1
+    before numpy is imported does the same for a whole process. A no-op where no OpenBLAS
+    is found."""
     handles = _openblas_handles()
     old = [get() for get, _ in handles]
     for _, set_ in handles:

@@ -24,7 +24,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers.result import SolveResult
 
 

@@ -1,7 +1,7 @@
 """A pure-JAX QP solver for the controller's QPs: jit- and vmap-able, fixed shapes; the
 public entry of the JAX path.
 
-Problem (the seam QP of ``safewbc_jax.qp_types``)
+Problem (the seam QP of ``safewbc_jax.solvers.problem``)
 
     minimize    1/2 x'Px + q'x
     subject to  A x = b,   G x <= h,   lb <= x <= ub
@@ -55,8 +55,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from safewbc_jax.chunking import ByPlatform, chunked, resolve_chunk
-from safewbc_jax.qp_types import QP
+from safewbc_jax.base.chunking import ByPlatform, chunked, resolve_chunk
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers import policy, reduce
 from safewbc_jax.solvers.blas import blas_threads
 from safewbc_jax.solvers.ipm import interior_point, scale_problem
@@ -267,17 +267,10 @@ def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None 
     an accelerator (``chunking.ByPlatform``). A batch of at most ``chunk`` QPs is one vmap
     (the same compiled function as chunk None).
 
-    Why: on a CPU one vmap over a large batch costs more per QP. Measured with
-    ``benchmarks/jax_qp_bench.py`` on the recorded controller QPs (float64, one core of a
-    2-core x86-64 machine shared with other work, jaxlib 0.10.2, medians of 9): 1,024 QPs
-    took 378 us per QP as one vmap, 164 / 173 / 205 us in chunks of 64 / 128 / 256; 256 QPs
-    217 us as one vmap, 196 us in chunks of 64. Two causes: the same 256 QPs repeated to
-    1,024 took 234 us per QP as one vmap against 158 us for the 256 (another run: a larger
-    vmap is slower per QP on identical work), and a vmapped loop runs until the slowest QP of its
-    batch stops (up to 22 interior-point iterations in the first 1,024 recorded QPs, 8 in
-    the first 256), while a chunk stops at its own slowest. Chunks of 32 to 256 were within
-    ~30% of each other at batch 1,024 in four runs; 64 was the fastest in three of them
-    (in the first, 128 and 32 were ~15% faster), 256 never."""
+    Why: on a CPU one vmap over a large batch costs more per QP: a larger vmap is slower
+    per QP on identical work, and a vmapped loop runs until the slowest QP of its batch
+    stops, while a chunk stops at its own slowest. 64 was the fastest chunk in most runs
+    (benchmarks/README.md, "Figures behind design choices", ``benchmarks/jax_qp_bench.py``)."""
     if not qps.has_blocks:
         reduce.bounded_variables(qps)          # raises, naming what is missing
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.asarray(qps.P).dtype

@@ -3,14 +3,14 @@ vmap issued in sub-batches small enough to run inline; on every other platform (
 ROCm, TPU) one batched call over the whole vmap.
 
 Why: on the CPU, jaxlib 0.10's batched LAPACK kernels (``lapack_dpotrf_ffi``,
-``lapack_dtrsm_ffi``, ``lapack_dgetrf_ffi``, ...) split a batch whose work (batch x
-jaxlib's FLOP estimate per matrix) is ``MIN_WORK`` or more into tasks on XLA's intra-op
-thread pool, and then block the pool thread that runs them until the tasks are done
-(``ParallelBatchMap`` in ``jaxlib/cpu/lapack_kernels.cc``). When XLA's thunk executor runs
-as many such calls at once as the pool has threads, every thread waits for tasks no
-thread is free to run, and the program never returns, every thread idle. On the 2-core
-CI machine that is two independent batched factorisations. It hung the batched closed
-loop at 64 and 256 rollouts per chunk (native stacks: both ``tf_XLAEigen`` threads in
+``lapack_dtrsm_ffi``, ``lapack_dgetrf_ffi``, ...) split a batch whose work (batch x jaxlib's
+FLOP estimate per matrix) is ``MIN_WORK`` or more into tasks on XLA's intra-op thread pool,
+and then block the pool thread that runs them until the tasks are done (``ParallelBatchMap``
+in ``jaxlib/cpu/lapack_kernels.cc``). When XLA's thunk executor runs as many such calls at
+once as the pool has threads, every thread waits for tasks no thread is free to run, and the
+program never returns, every thread idle. On a CPU with two threads in the pool, two
+independent batched factorisations are enough. It hung the batched closed loop at 64 and 256
+rollouts per chunk (native stacks: both ``tf_XLAEigen`` threads in
 ``absl::BlockingCounter::Wait`` under ``ParallelBatchMap``, one in ``dpotrf``, one in
 ``dtrsm``). jaxlib 0.11.2 compiles that parallel path out; the pinned MJX needs 0.10.
 
@@ -19,9 +19,8 @@ matrix and, under vmap (``jax.custom_batching.custom_vmap``), the same LAPACK ca
 sub-batches of at most ``k`` matrices, ``k`` below the threshold for the matrix sizes,
 one after the other (``lax.map``; the last sub-batch padded with copies of the first
 matrix). Each matrix goes through the same routine as in one big call, so the results are
-the same; the calls run on the calling thread and never wait on the pool. Measured
-against one batched call (vmap over 64 SPD 36 x 36 matrices, Cholesky and a solve with 43
-right-hand sides): 3.58 against 3.61 ms, where the same in unrolled jax.numpy took 9.0 ms.
+the same; the calls run on the calling thread and never wait on the pool, at the speed
+of one batched call (benchmarks/README.md, "Figures behind design choices").
 
 One vmap level: under a second vmap the outer one batches the inner one's sub-batch
 calls again (``tests/test_lapack_batched.py`` checks the rollout's graph).

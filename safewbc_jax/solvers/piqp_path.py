@@ -19,16 +19,15 @@ implements it as ignored ("warm-start values are ignored by PIQP"), and it build
 ``DenseSolver`` (``setup``) on every call. ``initvals`` is still accepted here for API
 parity with the JAX solver and forwarded to qpsolvers, which drops it.
 
-What ``update`` does and does not buy (measured, benchmarks/piqp_qp_bench.py, n=78,
-me=58, mi=40): ``setup`` on this size is cheap, so setup + solve and update + solve cost
-the same to within a few percent; the solve (~8 interior-point iterations) dominates.
-After ``update`` the Ruiz equilibration does not end where a fresh ``setup`` would (with
-``preconditioner_iter=0`` the two agree bit for bit), so its x differs from a fresh
-setup's by amounts of the order of the solver tolerance (up to ~1e-5 on these QPs at the
-default eps): x then depends slightly on the history of QPs.
-The PIQP setting ``preconditioner_reuse_on_update=True`` (pass it as a keyword) skips the
-re-equilibration and saves ~15-20% of the solve time; with ``update=False`` every call is
-a setup and x is bit-identical to the qpsolvers path.
+What ``update`` does and does not buy (benchmarks/README.md, "Figures behind design
+choices"): ``setup`` on the controller's size is cheap, so setup + solve and update + solve
+cost about the same; the solve dominates. After ``update`` the Ruiz equilibration does not
+end where a fresh ``setup`` would (with ``preconditioner_iter=0`` the two agree bit for
+bit), so its x differs from a fresh setup's by amounts of the order of the solver tolerance
+(up to ~1e-5 on these QPs at the default eps): x then depends slightly on the history of
+QPs. The PIQP setting ``preconditioner_reuse_on_update=True`` (pass it as a keyword) skips
+the re-equilibration, which saves part of the solve time; with ``update=False`` every call
+is a setup and x is bit-identical to the qpsolvers path.
 
 Fallback policy (``policy``: the same acceptance checks and decision as the JAX solver;
 each ``PiqpSolver.solve`` returns a ``result.SolveResult``, the JAX solver's type):
@@ -55,7 +54,7 @@ import numpy as np
 import piqp
 import qpsolvers
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers import policy
 from safewbc_jax.solvers.policy import Attempt
 from safewbc_jax.solvers.relax import DEFAULT_RHO, DEFAULT_RHO_LIN, relax_soft_rows_np

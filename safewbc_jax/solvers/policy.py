@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED,
                                         NOT_ATTEMPTED, SolveResult)
 from safewbc_jax.solvers.settings import BIG

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers import lapack_batched as lbt
 from safewbc_jax.solvers.settings import BIG
 

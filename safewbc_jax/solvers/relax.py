@@ -1,6 +1,6 @@
 """Soft-row relaxation of the controller QP: the fallback when the QP as posed is infeasible.
 
-Given the QP (see ``safewbc_jax.qp_types``)
+Given the QP (see ``safewbc_jax.solvers.problem``)
 
     minimize    1/2 x'Px + q'x
     subject to  A x = b,   G x <= h,   lb <= x <= ub
@@ -42,7 +42,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax.qp_types import QP
+from safewbc_jax.solvers.problem import QP
 
 DEFAULT_RHO = 1e6
 DEFAULT_RHO_LIN = 0.0

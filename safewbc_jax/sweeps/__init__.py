@@ -6,7 +6,7 @@
 * :mod:`.table`  the results table: one Parquet file per finished chunk, written
                  atomically, read back as one table; the manifest that makes resume safe;
 * :mod:`.run`    ``safewbc sweep``: chunks of batched rollouts through
-                 ``safewbc_jax.batch.rollout.run_batch``;
+                 ``safewbc_jax.sim.mjx.rollout.run_batch``;
 * :mod:`.stats`  Wilson score intervals for violation rates;
 * :mod:`.report` ``safewbc report``: figures and ``summary.md``;
 * :mod:`.tuning` ``safewbc tune``: poles, gains and weights with no fall or violation over

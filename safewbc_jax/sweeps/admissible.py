@@ -20,7 +20,7 @@ def start_etas(spec: SweepSpec, name: str, thresholds: np.ndarray, perturb_v: np
     """(N, r) eta(x_0) of barrier ``name`` for N start states (threshold, perturbation),
     through the batched path's own start-state function (``batch.rollout.start_etas``)
     in blocks of BLOCK (one compiled shape)."""
-    from safewbc_jax.batch import rollout
+    from safewbc_jax.sim.mjx import rollout
 
     pl = rollout.plant(rollout.BatchConfig.of(spec.run))
     v = np.asarray(perturb_v, float)
@@ -40,7 +40,7 @@ def start_etas(spec: SweepSpec, name: str, thresholds: np.ndarray, perturb_v: np
 def check_sweep(spec: SweepSpec, base, settings: np.ndarray, seed: int, std: np.ndarray):
     """Raise PoleError (naming the rollout, its setting and the bound) unless every rollout
     of the sweep has Theorem-1 admissible poles at its own start state."""
-    from safewbc_jax import barriers
+    from safewbc_jax.control import barriers
     from safewbc_jax.sweeps import inputs
 
     if not spec.barrier or not spec.barriers:
@@ -70,7 +70,7 @@ def check_sweep(spec: SweepSpec, base, settings: np.ndarray, seed: int, std: np.
 
 def admissible_mask(name: str, candidates: np.ndarray, etas: np.ndarray) -> np.ndarray:
     """(C,) True where candidate poles (C, r) pass Theorem 1 at every start state (D, r)."""
-    from safewbc_jax import barriers
+    from safewbc_jax.control import barriers
 
     ok = np.ones(len(candidates), bool)
     uniq = np.unique(np.asarray(etas), axis=0)

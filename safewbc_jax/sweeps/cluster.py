@@ -123,10 +123,10 @@ _LANES: dict = {}       # (run, lockstep) -> pool.Lanes: compiled once per worke
 def run_chunk(job: dict, params, push, perturb_v) -> dict:
     """One chunk in this process: the metric columns of its rollouts (``run_sweep``'s
     executor contract). ``job``: engine, run (``RunSpec``), precision, lockstep, cache_dir."""
-    import safewbc_jax
+    from safewbc_jax.base import runtime
 
     if job["engine"] == "mujoco":
-        safewbc_jax.use_cpu()
+        runtime.use_cpu()
         from safewbc_jax.sweeps import pool
 
         key = (job["run"], job["lockstep"])
@@ -141,10 +141,10 @@ def run_chunk(job: dict, params, push, perturb_v) -> dict:
             for i, r in zip(group, lanes.run([tasks[i] for i in group])):
                 (results if r[0] == "done" else errors)[i] = r[1]
         return pool.columns(lanes.dtypes, len(tasks), results, errors)
-    safewbc_jax.enable_x64()
+    runtime.enable_x64()
     if job.get("cache_dir"):
-        safewbc_jax.use_compile_cache(job["cache_dir"])
-    from safewbc_jax.batch.rollout import BatchConfig, run_batch
+        runtime.use_compile_cache(job["cache_dir"])
+    from safewbc_jax.sim.mjx.rollout import BatchConfig, run_batch
 
     return run_batch(BatchConfig.of(job["run"], precision=job["precision"]), params, push,
                      perturb_v)[0]

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from safewbc_jax.push import Push
+from safewbc_jax.sim.push import Push
 from safewbc_jax.sweeps.spec import SweepSpec
 
 
 def base_params(spec: SweepSpec):
     """The scenario's default ControllerParams with the spec's fixed overrides."""
-    from safewbc_jax.params import apply_overrides
+    from safewbc_jax.control.params import apply_overrides
 
     p = spec.run.get_scenario().default_params()
     return apply_overrides(p, spec.params, f"{spec.path}: [params]")

@@ -40,9 +40,8 @@ START_TIMEOUT_S = 1800.0      # a worker's import, compile and warm-up
 def lockstep_width(batch) -> int:
     """The lockstep width of a pool whose chunks hold at most ``batch`` rollouts: ``LOCKSTEP``,
     or ``batch`` where that is smaller (None, or "auto" before it is resolved:
-    ``LOCKSTEP``). Every lane of the vmapped step is computed, filled or not: a one-worker
-    sweep of four arms rollouts at batch 2 (two groups, 1,050 steps each, warm cache)
-    took 13.9 s at width 2 and 19.5 s at width 16 (2-core AMD EPYC, CHANGELOG)."""
+    ``LOCKSTEP``). Every lane of the vmapped step is computed, filled or not, so narrow
+    chunks run faster at their own width (benchmarks/README.md, "Figures behind design choices")."""
     if isinstance(batch, (int, np.integer)) and batch >= 1:
         return min(LOCKSTEP, int(batch))
     return LOCKSTEP
@@ -88,12 +87,12 @@ class Lanes:
     ``sim.lockstep.Lockstep``). Start JAX on the CPU (``safewbc_jax.use_cpu``) first."""
 
     def __init__(self, job: dict):
-        import safewbc_jax
+        from safewbc_jax.base import runtime
 
-        safewbc_jax.enable_x64()
+        runtime.enable_x64()
         if job.get("cache_dir"):
-            safewbc_jax.use_compile_cache(job["cache_dir"])
-        from safewbc_jax import metrics
+            runtime.use_compile_cache(job["cache_dir"])
+        from safewbc_jax.control import metrics
         from safewbc_jax.sim.lockstep import Lockstep
         from safewbc_jax.sim.mujoco_loop import SimRobot
 
@@ -114,7 +113,7 @@ class Lanes:
     def run(self, tasks: list) -> list:
         """Roll out one lockstep group: per task ("done", metric columns) or ("failed",
         reason); an exception of the group fails each of its rollouts, with the reason."""
-        from safewbc_jax import metrics
+        from safewbc_jax.control import metrics
 
         try:
             res = self.lock.run(tasks, self.n_steps)
@@ -129,7 +128,7 @@ def chunk_tasks(params, push, perturb_v) -> list:
     """A chunk's rollouts as lockstep tasks: (params, ``Push``, perturbation) each."""
     import jax
 
-    from safewbc_jax.push import Push
+    from safewbc_jax.sim.push import Push
 
     perturb_v = np.asarray(perturb_v, float)
     leaves = jax.tree_util.tree_map(np.asarray, params)
@@ -165,9 +164,9 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
     if cpu is not None:
         os.sched_setaffinity(0, {cpu})
     try:
-        import safewbc_jax
+        from safewbc_jax.base import runtime
 
-        safewbc_jax.use_cpu()          # a CPU engine: never a GPU backend, whatever is installed
+        runtime.use_cpu()          # a CPU engine: never a GPU backend, whatever is installed
         lanes = Lanes(job)
         conn.send(("ready", lanes.n_steps, lanes.dtypes))
     except Exception:  # noqa: BLE001
@@ -373,6 +372,6 @@ def resolve_engine(engine: str) -> str:
 
 
 # what "auto" runs on a CPU: the engine with the higher robot-steps/s in
-# benchmarks/sweep_engines.py on the 2-core development machine (benchmarks/README.md:
+# benchmarks/sweep_engines.py on the development machine (benchmarks/README.md:
 # mujoco about 2x mjx)
 AUTO_CPU_ENGINE = "mujoco"

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from safewbc_jax.plots import pyplot
+from safewbc_jax.ui.plots import pyplot
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.stats import wilson_interval
 

@@ -19,8 +19,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from safewbc_jax.progress import Progress
-from safewbc_jax.push import Push
+from safewbc_jax.ui.progress import Progress
+from safewbc_jax.sim.push import Push
 from safewbc_jax.sweeps import inputs, sizing
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.spec import SweepSpec
@@ -44,12 +44,12 @@ class SweepResult:
 
 
 def real_executor():
-    """The mjx engine's executor: ``safewbc_jax.batch.rollout.run_batch``."""
+    """The mjx engine's executor: ``safewbc_jax.sim.mjx.rollout.run_batch``."""
     try:
-        from safewbc_jax.batch.rollout import BatchConfig, run_batch
+        from safewbc_jax.sim.mjx.rollout import BatchConfig, run_batch
     except ImportError as e:
         raise RuntimeError(f"the batched rollout path is not available ({e}); sweeps need "
-                           "safewbc_jax.batch.rollout.run_batch") from None
+                           "safewbc_jax.sim.mjx.rollout.run_batch") from None
 
     def execute(spec: SweepSpec, params, push: Push, perturb_v: np.ndarray) -> dict:
         cfg = BatchConfig.of(spec.run, precision=spec.precision)
@@ -62,7 +62,7 @@ def real_executor():
 def sim_model():
     import mujoco
 
-    from safewbc_jax import paths
+    from safewbc_jax.base import paths
 
     return mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
 

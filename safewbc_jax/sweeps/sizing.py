@@ -35,7 +35,7 @@ def auto_batch(spec: SweepSpec, out: Path, engine: str, quiet=False) -> int:
     dev = jax.local_devices()[0]
     if engine == "mujoco" or dev.platform == "cpu":
         return spec.batch
-    from safewbc_jax.batch.rollout import BatchConfig, largest_batch, memory_model
+    from safewbc_jax.sim.mjx.rollout import BatchConfig, largest_batch, memory_model
 
     cfg = BatchConfig.of(spec.run, precision=spec.precision)
     fixed, per = memory_model(cfg)

@@ -1,7 +1,5 @@
 """Sweep spec files: parsing, validation and the plan of rollouts.
 
-Size: one file format, each of its six tables parsed and checked where it is read.
-
 A spec is a TOML file::
 
     [sweep]
@@ -17,7 +15,7 @@ A spec is a TOML file::
     target = "left_fist"     # the barrier the report and tune-poles look at
     safe_sets = ["my_barrier.py:NAME"]   # the user's safe sets (paths from the spec's folder);
                                          # their poles and thresholds are axes like any other
-    precision = "float64"    # or "mixed" (mjx engine only): safewbc_jax/precision.py
+    precision = "float64"    # or "mixed" (mjx engine only): safewbc_jax/control/precision.py
 
     [params]                 # fixed ControllerParams overrides, as in ``--params FILE``
     mu = 0.6
@@ -49,7 +47,7 @@ Axis names in ``[grid]``:
 * ``kp.O``, ``kd.O``, ``weight.O`` (the same value on every component of output O);
 * ``kp_scale.O``, ``kd_scale.O``, ``weight_scale.O`` (factors on the defaults), and
   ``gain_scale.O`` (K_p times s and K_d times sqrt(s): the damping ratio is kept);
-* the scalar parameters of :data:`safewbc_jax.params.SCALARS` (``mu``, ``f_min``, ...);
+* the scalar parameters of :data:`safewbc_jax.control.params.SCALARS` (``mu``, ``f_min``, ...);
 * ``push.magnitude``, ``push.direction``, ``push.at``, ``push.duration``.
 
 Axis values are a non-empty list of numbers or one of ``{ values = [...] }``,
@@ -72,8 +70,8 @@ from typing import Any
 
 import numpy as np
 
-from safewbc_jax import userfile
-from safewbc_jax.push import PUSH_AT, PUSH_FOR
+from safewbc_jax.base import userfile
+from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR
 
 SECTIONS = ("sweep", "params", "grid", "push", "perturb", "tune")
 SWEEP_KEYS = {"scenario": str, "barrier": bool, "duration": float, "settle": float,
@@ -146,7 +144,7 @@ class SweepSpec:
     @property
     def run(self):
         """The ``runspec.RunSpec`` both engines take (walking's speed: the default)."""
-        from safewbc_jax.runspec import RunSpec
+        from safewbc_jax.sim.runspec import RunSpec
         return RunSpec(self.scenario, self.barrier, self.duration, self.settle, self.control_dt,
                        safe_sets=tuple(self.safe_sets))
 
@@ -270,7 +268,7 @@ def _safe_set_refs(src, value) -> tuple:
     """sweep.safe_sets: a list of "FILE.py:NAME", FILE relative to the spec's folder ->
     the references with absolute paths (SpecError on a malformed one; the files are loaded,
     once, by ``_scenario_info``)."""
-    from safewbc_jax import safesets
+    from safewbc_jax.control import safesets
 
     if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
         raise SpecError(f"{src}: sweep.safe_sets = {_fmt(value)}: expected a list of "
@@ -286,7 +284,8 @@ def _scenario_info(src, name, safe_sets=()):
     """(enforced barriers, monitored barriers, outputs, pole counts) of a scenario with
     the user's ``safe_sets``, or a SpecError naming the scenarios there are (the batched
     path runs them all). ``name``: a scenario's name or a user's "ABSOLUTE/FILE.py:NAME"."""
-    from safewbc_jax import safesets, scenarios
+    from safewbc_jax import scenarios
+    from safewbc_jax.control import safesets
 
     known = scenarios.names()
     if not isinstance(name, str) or name not in known and not userfile.is_ref(name):
@@ -309,7 +308,7 @@ _POLE_RE = re.compile(r"^p([1-9][0-9]*)$")
 
 
 def _parse_axis(src, key, values, info) -> Axis:
-    from safewbc_jax.params import SCALARS
+    from safewbc_jax.control.params import SCALARS
 
     barriers, monitors, outputs, pole_counts = info
     where = f"grid.{_quote(key)}"
@@ -421,7 +420,7 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
     tol = num("violation_tol", nonneg=True) or 0.0
     barrier_on = sw.get("barrier", True)
     prec = sw.get("precision", "float64")
-    from safewbc_jax import precision as precision_mod
+    from safewbc_jax.control import precision as precision_mod
 
     try:
         precision_mod.check(prec, "sweep.precision")
@@ -437,7 +436,7 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
                         f"scenario {scenario!r}; its barriers are {list(all_b) or 'none'}")
 
     params = _table(src, data, "params")
-    from safewbc_jax.params import ParamsError, apply_overrides
+    from safewbc_jax.control.params import ParamsError, apply_overrides
 
     try:
         apply_overrides(defaults, params, f"{src}: [params]")

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from safewbc_jax.plots import pyplot
+from safewbc_jax.ui.plots import pyplot
 
 TUNING = "tuning.json"
 

@@ -553,7 +553,7 @@ def _validate(run: _Run, best: Candidate) -> dict:
 def _write_params(run: _Run, out: Path, best, gens, used, stop, validation, baseline) -> str:
     """The params TOML: every parameter, the tuned ones set, and a header with the search's
     and the validation's figures. Returns the extra ``safewbc run`` arguments."""
-    from safewbc_jax.params import apply_overrides, load_overrides, to_toml
+    from safewbc_jax.control.params import apply_overrides, load_overrides, to_toml
 
     spec, cfg = run.spec, run.cfg
     one = inputs.params_batch(run.base, tuple(p.axis for p in run.params),

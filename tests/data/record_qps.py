@@ -14,7 +14,7 @@ import numpy as np
 
 import qp_fixture
 
-from safewbc_jax.runner import run_scenario
+from safewbc_jax.app.runner import run_scenario
 
 OUT = Path(__file__).with_name("controller_qps.npz")
 RUNS = [("squat", dict(duration=3.0), 30), ("bow", dict(duration=6.0), 50),

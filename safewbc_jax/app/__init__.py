@@ -1,0 +1,1 @@
+"""The ``safewbc`` command and its runs."""
