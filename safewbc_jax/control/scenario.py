@@ -28,6 +28,7 @@ from safewbc_jax.control import references
 from safewbc_jax.control.params import ControllerParams, make_params
 from safewbc_jax.control.safesets import SafeSet, SafeSetError
 from safewbc_jax.control.tasks import Task
+from safewbc_jax.model import digit
 
 
 @functools.partial(jax.tree_util.register_dataclass,
@@ -173,8 +174,8 @@ def start_state(model, q) -> Start:
     from safewbc_jax.control import outputs
     from safewbc_jax.model import robot
 
-    pl, _ = robot.frame_pose(model, q, "left-sole")
-    pr, _ = robot.frame_pose(model, q, "right-sole")
+    pl, _ = robot.frame_pose(model, q, digit.LEFT_SOLE)
+    pr, _ = robot.frame_pose(model, q, digit.RIGHT_SOLE)
     origin = 0.5 * (pl + pr)
     arm0 = q[np.array([model.joint_qadr(j) for j in outputs.ARM_JOINTS])]
     return Start(origin=origin.at[2].set(0.0), arm0=arm0)

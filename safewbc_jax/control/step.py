@@ -44,8 +44,8 @@ from safewbc_jax.model import contacts, robot
 from safewbc_jax.control import scenario as scenario_mod
 from safewbc_jax.solvers.problem import Blocks
 from safewbc_jax.solvers.result import FALLBACK_FAILED, SolveResult
+from safewbc_jax.model.digit import FALL_HEIGHT
 
-FALL_HEIGHT = 0.55  # m: base below this counts as a fall
 DEFAULT_CONTROL_DT = 1e-3   # s: the paper's 1 kHz
 DEFAULT_SPEED = 0.2         # m/s: walking's commanded mean forward speed
 # Measurement bounds. |quat| is 1 to ~1e-15 from any estimator that normalises; 1e-3 is far

@@ -54,6 +54,7 @@ from safewbc_jax.control.safesets import SafeSet
 from safewbc_jax.control.scenario import Scenario
 from safewbc_jax.control.tasks import Task
 from safewbc_jax.solvers import lapack_batched as lb
+from safewbc_jax.model import digit
 
 H_WALK = 0.9            # CoM height (m), paper
 STEP_T = 0.35           # step period (s), paper
@@ -153,13 +154,13 @@ class SwingFootPosition(outputs.Output):
     labels = ("swing_x", "swing_y", "swing_z")
 
     def value(self, model, q, domain=None):
-        pl = robot.frame_pose(model, q, "left-sole")[0]
-        pr = robot.frame_pose(model, q, "right-sole")[0]
+        pl = robot.frame_pose(model, q, digit.LEFT_SOLE)[0]
+        pr = robot.frame_pose(model, q, digit.RIGHT_SOLE)[0]
         return pl if domain is None else _swing_select(domain, pl, pr)
 
     def evaluate(self, model, q, v, terms=None):
-        left = outputs.FramePosition(frame="left-sole").evaluate(model, q, v, terms)
-        right = outputs.FramePosition(frame="right-sole").evaluate(model, q, v, terms)
+        left = outputs.FramePosition(frame=digit.LEFT_SOLE).evaluate(model, q, v, terms)
+        right = outputs.FramePosition(frame=digit.RIGHT_SOLE).evaluate(model, q, v, terms)
         domain = terms.domain
         return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
 
@@ -173,13 +174,13 @@ class SwingFootOrientation(outputs.Output):
     labels = ("swing_roll", "swing_pitch", "swing_yaw")
 
     def value(self, model, q, domain=None):
-        left = outputs.FrameOrientation(frame="left-sole").value(model, q)
-        right = outputs.FrameOrientation(frame="right-sole").value(model, q)
+        left = outputs.FrameOrientation(frame=digit.LEFT_SOLE).value(model, q)
+        right = outputs.FrameOrientation(frame=digit.RIGHT_SOLE).value(model, q)
         return left if domain is None else _swing_select(domain, left, right)
 
     def evaluate(self, model, q, v, terms=None):
-        left = outputs.FrameOrientation(frame="left-sole").evaluate(model, q, v, terms)
-        right = outputs.FrameOrientation(frame="right-sole").evaluate(model, q, v, terms)
+        left = outputs.FrameOrientation(frame=digit.LEFT_SOLE).evaluate(model, q, v, terms)
+        right = outputs.FrameOrientation(frame=digit.RIGHT_SOLE).evaluate(model, q, v, terms)
         domain = terms.domain
         return tuple(_swing_select(domain, a, b) for a, b in zip(left, right))
 
@@ -187,8 +188,8 @@ class SwingFootOrientation(outputs.Output):
 def _heading_lateral(model, q, domain):
     """Lateral distance of the swing sole from the stance sole in the heading frame,
     signed positive when the feet are apart (either stance side)."""
-    pl = robot.frame_pose(model, q, "left-sole")[0]
-    pr = robot.frame_pose(model, q, "right-sole")[0]
+    pl = robot.frame_pose(model, q, digit.LEFT_SOLE)[0]
+    pr = robot.frame_pose(model, q, digit.RIGHT_SOLE)[0]
     d = alip.world_to_heading((pl - pr)[:2], domain.heading)  # left foot from right
     return d[1]  # > 0 when the left foot is to the left of the right one
 
@@ -204,8 +205,8 @@ def swing_clearance_terms(model, kin, motion, threshold, domain):
     """(h, J_h, J_h_dot v) of ``swing_clearance_h`` in closed form: h is linear in the two
     soles' world positions (the heading is the domain's, fixed within a step), so its
     Jacobian and drift are that combination of the soles' (``robot.site_point_terms``)."""
-    pl, jl, al = robot.site_point_terms(model, kin, motion, "left-sole")
-    pr, jr, ar = robot.site_point_terms(model, kin, motion, "right-sole")
+    pl, jl, al = robot.site_point_terms(model, kin, motion, digit.LEFT_SOLE)
+    pr, jr, ar = robot.site_point_terms(model, kin, motion, digit.RIGHT_SOLE)
     eye = jnp.eye(2, dtype=pl.dtype)
     c = alip.world_to_heading(eye, domain.heading)[:, 1]     # d_y = c . (p_l - p_r)_xy
     return c @ (pl - pr)[:2] - threshold, c @ (jl - jr)[:2], c @ (al - ar)[:2]
@@ -225,8 +226,8 @@ def swing_barrier():
 
 def passive_actuators(model, domain):
     """1 for the stance leg's ankle motors (toe-A, toe-B): the passive stance ankle."""
-    left = np.array([n in ("left-toe-A", "left-toe-B") for n in model.actuator_names], float)
-    right = np.array([n in ("right-toe-A", "right-toe-B") for n in model.actuator_names], float)
+    left = np.array([n in digit.toe_motors("left") for n in model.actuator_names], float)
+    right = np.array([n in digit.toe_motors("right") for n in model.actuator_names], float)
     stance = domain.stance
     return jnp.where(stance > 0, left, 0.0) + jnp.where(stance < 0, right, 0.0)
 
@@ -236,8 +237,8 @@ def plan_step(model, q, v, domain):
     [2] clipped to the leg's reach), heading frame, from the measured state."""
     heading = domain.heading
     stance = domain.stance
-    pl = robot.frame_pose(model, q, "left-sole")[0]
-    pr = robot.frame_pose(model, q, "right-sole")[0]
+    pl = robot.frame_pose(model, q, digit.LEFT_SOLE)[0]
+    pr = robot.frame_pose(model, q, digit.RIGHT_SOLE)[0]
     contact = jnp.where(stance > 0, pl, pr)
     state = alip.alip_state_from_robot(model, q, v, contact, heading)
     mass = jnp.sum(model.body_mass)
@@ -429,15 +430,15 @@ class WalkStart(NamedTuple):
 def walking_start(model, q, start, blend) -> WalkStart:
     """What the walking references need in the run's start data beyond
     ``scenario.start_state`` (``WalkStart``)."""
-    pl = robot.frame_pose(model, q, "left-sole")[0]
+    pl = robot.frame_pose(model, q, digit.LEFT_SOLE)[0]
     return WalkStart(jnp.asarray(blend), pl[1] - start.origin[1])
 
 
 def first_step_domain(model, q, v_des=0.2):
     """The domain at the start of the first (left-stance) step with the robot at ``q``:
     where walking barriers, inactive while standing, meet Theorem 1 first."""
-    pl = np.asarray(robot.frame_pose(model, q, "left-sole")[0])
-    pr = np.asarray(robot.frame_pose(model, q, "right-sole")[0])
+    pl = np.asarray(robot.frame_pose(model, q, digit.LEFT_SOLE)[0])
+    pr = np.asarray(robot.frame_pose(model, q, digit.RIGHT_SOLE)[0])
     g = GaitState(np.float64(LEFT), np.float64(0.0), pl, pr, 0, 0)
     return gait_domain(g, np.float64(0.0), np.float64(v_des), np.float64(STEP_WIDTH))
 
@@ -495,8 +496,8 @@ class AlipGait:
         """``gait_step`` from the measurement: the soles by forward kinematics of q, the
         swinging sole's normal force."""
         swing = jnp.where(gait.stance > 0, sole_force[1], sole_force[0])
-        sole_l = robot.frame_pose(model, q, "left-sole")[0]
-        sole_r = robot.frame_pose(model, q, "right-sole")[0]
+        sole_l = robot.frame_pose(model, q, digit.LEFT_SOLE)[0]
+        sole_r = robot.frame_pose(model, q, digit.RIGHT_SOLE)[0]
         return gait_step(gait, prev_tau, dt, sole_l, sole_r, swing, weight, xp=jnp)[0]
 
     def domain(self, gait: GaitState, speed):

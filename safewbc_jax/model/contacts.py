@@ -44,8 +44,9 @@ import numpy as np
 
 from safewbc_jax.model import robot, spatial
 from safewbc_jax.model.robot import RobotModel
+from safewbc_jax.model import digit
 
-FEET = ("left-sole", "right-sole")
+FEET = digit.SOLES
 SOLE_LENGTH = 2 * 0.1175  # m, along the sole site's x (digit.xml sole box half size 0.1175)
 SOLE_WIDTH = 2 * 0.04     # m, along the sole site's y (digit.xml sole box half size 0.04)
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from safewbc_jax.model import digit
+
 
 def model_info() -> dict:
     """Sizes, masses, loop residual and foot heights at ``stand``, torque limits."""
@@ -21,9 +23,9 @@ def model_info() -> dict:
         "ctrl_nq": int(mc.nq), "ctrl_nv": int(mc.nv), "nu": int(ms.nu),
         "mass_kg": float(ms.body_mass.sum()), "ctrl_mass_kg": float(mc.body_mass.sum()),
         "loop_residual_m": sim_loop_residual(ms, d),
-        "foot_height_m": [float(d.site_xpos[ms.site(f"{s}-sole").id][2])
-                          for s in ("left", "right")],
-        "com_height_m": float(d.subtree_com[ms.body("base").id][2]),
+        "foot_height_m": [float(d.site_xpos[ms.site(digit.sole(s)).id][2])
+                          for s in digit.SIDES],
+        "com_height_m": float(d.subtree_com[ms.body(digit.BASE).id][2]),
         "timestep_s": float(ms.opt.timestep),
         "torque_limit_Nm": {ms.actuator(a).name:
                             float(ms.actuator_gear[a, 0] * ms.actuator_ctrlrange[a, 1])
@@ -46,8 +48,8 @@ def foot_contact_ids(ms) -> dict:
              and ms.geom(g).name.endswith("-collision")] for side in ("left", "right")]
     if len(legs[0]) != len(legs[1]):
         raise ValueError("the two legs have different numbers of collision geoms")
-    return {"sole_sites": np.array([ms.site(f"{s}-sole").id for s in ("left", "right")]),
-            "sole_geoms": np.array([ms.geom(f"{s}-sole").id for s in ("left", "right")]),
+    return {"sole_sites": np.array([ms.site(digit.sole(s)).id for s in digit.SIDES]),
+            "sole_geoms": np.array([ms.geom(digit.sole(s)).id for s in digit.SIDES]),
             "floor": ms.geom("floor").id, "legs": np.array(legs, int)}
 
 

@@ -15,6 +15,7 @@ from safewbc_jax.control import outputs, references, walking
 from safewbc_jax.control.safesets import SafeSet, SafeSetError, load
 from safewbc_jax.control.scenario import Scenario, start_state  # noqa: F401  (re-exported)
 from safewbc_jax.control.tasks import Task
+from safewbc_jax.model import digit
 
 # Threshold of the arm barrier h = -p_z - c (m). The paper's c = 0.195 (eq. 33) refers to its own
 # torso base frame; in this model's base frame (at hip height) the fists hang at
@@ -29,7 +30,7 @@ def _fist_height(side):
     def h(model, q, threshold, domain=None):
         from safewbc_jax.model import robot
 
-        return -robot.frame_position_in(model, q, f"{side}-fist", "torso")[2] - threshold
+        return -robot.frame_position_in(model, q, digit.fist(side), digit.TORSO)[2] - threshold
     return h
 
 
@@ -37,7 +38,7 @@ def _fist_height_terms(side):
     def terms(model, kin, motion, threshold, domain=None):
         from safewbc_jax.model import robot
 
-        y, jy, jdv = robot.position_in_terms(model, kin, motion, f"{side}-fist", "torso")
+        y, jy, jdv = robot.position_in_terms(model, kin, motion, digit.fist(side), digit.TORSO)
         return -y[2] - threshold, -jy[2], -jdv[2]
     return terms
 

@@ -29,6 +29,7 @@ from safewbc_jax.sim.push import Push
 from safewbc_jax.sim.runspec import RunSpec
 from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.solvers.result import fallback_name
+from safewbc_jax.model import digit
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,7 +119,7 @@ class SimRobot:
         self.motor_ids = np.array([ms.actuator(n).id for n in motor_names])  # motor -> ctrl
         self.sole_ids = ids["sole_sites"]
         self.sole0 = self.d.site_xpos[self.sole_ids, :2].copy()
-        self.base_id = ms.body("base").id
+        self.base_id = ms.body(digit.BASE).id
         self.loop_pairs = loop_site_pairs(ms)
         self._key = ms.key("stand").id
         self._mj = mujoco

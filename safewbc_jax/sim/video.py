@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from safewbc_jax.model import digit
+
 FPS = 30
 
 
@@ -17,7 +19,7 @@ def render_video(log: dict, path: str, width: int = 640, height: int = 480) -> N
     d = mujoco.MjData(m)
     cam = mujoco.MjvCamera()
     cam.type = mujoco.mjtCamera.mjCAMERA_TRACKING
-    cam.trackbodyid = m.body("base").id
+    cam.trackbodyid = m.body(digit.BASE).id
     cam.distance, cam.azimuth, cam.elevation = 3.0, 135.0, -15.0
     t = log["t"]
     frames = []

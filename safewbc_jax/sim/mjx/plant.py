@@ -27,6 +27,7 @@ from safewbc_jax.sim.runspec import RunSpec
 from safewbc_jax.control.scenario import Scenario, Start
 from safewbc_jax.scenarios import SCENARIOS, WALKING, get_scenario
 from safewbc_jax.sim.mujoco_loop import load_at_stand
+from safewbc_jax.model import digit
 
 BATCHED_SCENARIOS = tuple(SCENARIOS) + WALKING   # squat, bow, arms, walk, push
 
@@ -185,7 +186,7 @@ def _plant(scenario, barrier: bool, control_dt: float, safe_sets: tuple = (),
         qpos_idx=np.asarray(sm.qpos_idx), qvel_idx=np.asarray(sm.qvel_idx),
         motor_of_ctrl=np.argsort([ms.actuator(n).id for n in motors.names]),
         ctrl_lo=ms.actuator_ctrlrange[:, 0].copy(), ctrl_hi=ms.actuator_ctrlrange[:, 1].copy(),
-        base_id=ms.body("base").id, sole_sites=soles, tip_sites=tips, anchor_sites=anchors,
+        base_id=ms.body(digit.BASE).id, sole_sites=soles, tip_sites=tips, anchor_sites=anchors,
         sole0_xy=d.site_xpos[soles, :2].copy(),
         start=start, q0=q0, v0=v0, n_sub=n_sub, sim_dt=float(ms.opt.timestep), nv_sim=ms.nv,
         walking=ctx.walking,
