@@ -144,26 +144,11 @@ def closed_part(args, physics: list) -> list:
 def _fixture_errors(run_mixed) -> dict:
     """Per scenario of the fixture: the largest |u - u_float64| / torque limit of the mixed
     solve ``run_mixed(qps)``, and the QPs it did not solve."""
-    import importlib.util
+    sys.path.insert(0, str(Path(__file__).parent))
+    from precision import load_fixture
 
-    import jax
-    import jax.numpy as jnp
-
-    from safewbc_jax.solvers.problem import QP
-    from safewbc_jax.solvers import jax_qp
-
-    spec = importlib.util.spec_from_file_location("qp_fixture", ROOT / "tests/data/qp_fixture.py")
-    fx = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(fx)
-    d = fx.load(ROOT / "tests/data/controller_qps.npz")
-    fields = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
-    arr = {f: d[f"qp_{f}"] for f in fields}
-    scen = d["qp_scenario"].astype(str)
-    nv, nu = 36, 20
-    n = arr["P"].shape[-1]
-    qps = QP(*(jnp.asarray(arr[f]) for f in fields), nv=nv, nu=nu, nc=n - nv - nu)
-    ref = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps))
-    lim = np.broadcast_to(arr["ub"][:, nv:nv + nu].max(axis=0), (len(scen), nu))
+    qps, _, scen, lim, ref = load_fixture()
+    nv, nu = qps.nv, qps.nu
     res = run_mixed(qps)
     x, status = np.asarray(res.x)[:, nv:nv + nu], np.asarray(res.status)
     out = {}
@@ -258,9 +243,14 @@ def main(argv=None) -> int:
                 print(f"{part}: skipped, past --budget-s {args.budget_s:.0f}", flush=True)
                 continue
             t0 = time.perf_counter()
-            res = {"physics": lambda: physics_part(args), "linalg": lambda: linalg_part(args),
-                   "closed": lambda: closed_part(args, physics),
-                   "precision": lambda: precision_part(args)}[part]()
+            if part == "physics":
+                res = physics_part(args)
+            elif part == "linalg":
+                res = linalg_part(args)
+            elif part == "closed":
+                res = closed_part(args, physics)
+            else:
+                res = precision_part(args)
             if part == "physics":
                 physics = res
             done[part] = time.perf_counter() - t0

@@ -30,30 +30,46 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def fixture_part() -> None:
+FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
+
+
+def load_fixture():
+    """The recorded controller QPs (``tests/data/controller_qps.npz``): (QP batch, the
+    arrays by field, each QP's scenario, each joint's torque limit per QP, the float64
+    JAX solve as numpy). A joint's limit is the largest upper bound it has in any QP (a
+    walking QP fixes the passive stance ankle's torque at 0 with lb = ub = 0)."""
     import importlib.util
 
     import jax
     import jax.numpy as jnp
 
-    from safewbc_jax.control import precision
+    from safewbc_jax.solvers import jax_qp
     from safewbc_jax.solvers.problem import QP
-    from safewbc_jax.solvers import jax_qp, reduce
 
     spec = importlib.util.spec_from_file_location("qp_fixture", ROOT / "tests/data/qp_fixture.py")
     fx = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(fx)
     d = fx.load(ROOT / "tests/data/controller_qps.npz")
-    fields = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
-    arr = {f: d[f"qp_{f}"] for f in fields}
+    arr = {f: d[f"qp_{f}"] for f in FIELDS}
     scen = d["qp_scenario"].astype(str)
     nv, nu = 36, 20
     n = arr["P"].shape[-1]
-    qps = QP(*(jnp.asarray(arr[f]) for f in fields), nv=nv, nu=nu, nc=n - nv - nu)
+    qps = QP(*(jnp.asarray(arr[f]) for f in FIELDS), nv=nv, nu=nu, nc=n - nv - nu)
     ref = jax.tree_util.tree_map(np.asarray, jax_qp.solve_batch(qps))
-    # each joint's torque limit: the largest upper bound it has in any QP (a walking QP
-    # fixes the passive stance ankle's torque at 0 with lb = ub = 0)
     lim = np.broadcast_to(arr["ub"][:, nv:nv + nu].max(axis=0), (len(scen), nu))
+    return qps, arr, scen, lim, ref
+
+
+def fixture_part() -> None:
+    import jax.numpy as jnp
+
+    from safewbc_jax.control import precision
+    from safewbc_jax.solvers import jax_qp, reduce
+    from safewbc_jax.solvers.problem import QP
+
+    qps, arr, scen, lim, ref = load_fixture()
+    nv, nu, fields = qps.nv, qps.nu, FIELDS
+    n = arr["P"].shape[-1]
     runs = {"float32": jax_qp.solve_batch(qps, dtype=jnp.float32),
             "mixed": jax_qp.solve_batch(qps, settings=precision.qp_settings("mixed"))}
     cond = np.empty(len(scen))
