@@ -109,10 +109,13 @@ def resolve_engine(engine: str) -> str:
 
 
 def _resources(engine: str) -> dict:
+    """A chunk task's resources: one GPU for mjx where the cluster has GPUs, else one CPU;
+    the mujoco engine's workers start JAX on the CPU whatever the machine has."""
     if engine == "mjx" and gpus() > 0:
         return {"num_gpus": 1, "num_cpus": 1}
-    env = {"JAX_PLATFORMS": "cpu"} if engine == "mujoco" else {}
-    return {"num_cpus": 1, "runtime_env": {"env_vars": env}} if env else {"num_cpus": 1}
+    if engine == "mujoco":
+        return {"num_cpus": 1, "runtime_env": {"env_vars": {"JAX_PLATFORMS": "cpu"}}}
+    return {"num_cpus": 1}
 
 
 # --- what runs in a Ray worker process

@@ -131,7 +131,10 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
               ray: str | None = None) -> SweepResult:
     """Run (or resume) the sweep into ``out``. ``executor(spec, params, push, perturb_v)``
     (a batch: ControllerParams, ``push.Push`` and perturbations with a leading rollout axis)
-    returns the metrics dict of the batch (default: the real ``run_batch``).
+    returns the metrics dict of the batch (default: the real ``run_batch``); an executor
+    with ``map_chunks(spec, jobs)`` instead takes every (chunk, params, push, perturb_v) of
+    ``jobs`` and yields (chunk, metrics, None), or (chunk, None, why it has no result), in
+    the order the chunks finish (``cluster.RayExecutor``).
     ``max_chunks`` stops after that many chunks of this call (for notebooks and tests).
     Progress: with ``progress`` None, a tqdm bar of the rollouts (``progress.Progress``,
     titled ``desc``) and the messages go to ``stream`` (default stderr), nothing with
