@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import safewbc_jax
+from safewbc_jax.sim.lockstep import RolloutTask
 
 safewbc_jax.enable_x64()
 
@@ -39,7 +40,7 @@ def _task(ctl, sim, seed, p1, push_y):
     poles = {**ctl.params.poles, "left_fist": np.array([p1, 10.0])}
     params = dataclasses.replace(ctl.params, poles=poles)
     dv = 0.05 * np.random.default_rng(seed).standard_normal(sim.ms.nv)
-    return params, Push.single(np.array([0.0, push_y, 0.0]), 0.05, 0.05), dv
+    return RolloutTask(params, Push.single(np.array([0.0, push_y, 0.0]), 0.05, 0.05), dv)
 
 
 def _single(ctl, sim, task):
@@ -65,12 +66,12 @@ def test_lockstep_lanes_are_the_deployment_loop(loop):
     bad[2][5] = np.nan
     tasks = [_task(ctl, sim, 1, 8.0, 40.0), bad, _task(ctl, sim, 3, 30.0, -60.0)]
     got = lock.run(tasks, N_STEPS)
-    assert got[1][0] == "failed" and "start state refused" in got[1][1], got[1]
-    assert "not finite" in got[1][1]
+    assert got[1].columns is None and "start state refused" in got[1].error, got[1]
+    assert "not finite" in got[1].error
     for k in (0, 2):
         fell, fell_step, ref = _single(ctl, sim, tasks[k])
-        status, lfell, lstep, cols = got[k]
-        assert status == "done" and (lfell, lstep) == (fell, fell_step)
+        cols, lfell, lstep, error = got[k]
+        assert cols is not None and not error and (lfell, lstep) == (fell, fell_step)
         assert sorted(cols) == sorted(ref)
         for name in ref:
             a, b = np.asarray(ref[name]), np.asarray(cols[name])

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import operator
 import time
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -41,6 +42,29 @@ from safewbc_jax.control import metrics
 from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.sim.mujoco_loop import SimRobot
+
+
+class RolloutTask(NamedTuple):
+    """One rollout of a lockstep group: its ControllerParams, its push (``Push.single``,
+    or None) and its initial velocity perturbation of the simulator (nv,) (or None)."""
+
+    params: Any
+    push: Any
+    perturb_v: Any
+
+
+class Outcome(NamedTuple):
+    """A rollout's result: its metric columns, whether it fell and at which control step
+    (-1: it did not); or, with ``columns`` None, why it has none (``error``)."""
+
+    columns: dict | None
+    fell: bool = False
+    fell_step: int = -1
+    error: str = ""
+
+    @staticmethod
+    def failed(reason: str) -> "Outcome":
+        return Outcome(None, error=reason)
 
 
 class Lockstep:
@@ -76,10 +100,9 @@ class Lockstep:
         return self.compile_s
 
     def run(self, tasks: list, n_steps: int) -> list:
-        """Roll out ``tasks`` (each (params, push or None, perturb_v or None), or None to
-        leave the lane at the stand with the leader's params) for ``n_steps`` control
-        steps. Returns, per task, ("done", fell, fell step or -1, the finalized metric
-        columns, ``metrics.finalize``) or ("failed", reason)."""
+        """Roll out ``tasks`` (each a ``RolloutTask``, or None to leave the lane at the stand
+        with the leader's params) for ``n_steps`` control steps. Returns an ``Outcome`` per
+        task: the finalized metric columns (``metrics.finalize``), or why it has none."""
         W, n = self.width, len(tasks)
         if n > W:
             raise ValueError(f"{n} rollouts for a lockstep of width {W}")
@@ -89,23 +112,23 @@ class Lockstep:
         for i in range(W):
             t = tasks[i] if i < n else None
             try:
-                params, dv = (None, None) if t is None else (t[0], t[2])
+                params, dv = (None, None) if t is None else (t.params, t.perturb_v)
                 sims[i].reset(dv)
                 q, v = sims[i].sm.to_controller(sims[i].d.qpos, sims[i].d.qvel)
                 lanes[i].restart(q, v, self.leader.params if params is None else params)
                 live[i] = i < n
             except Exception as e:  # noqa: BLE001 - this rollout fails, the others run
-                out[i] = ("failed", f"{type(e).__name__}: {e}")
+                out[i] = Outcome.failed(f"{type(e).__name__}: {e}")
                 lanes[i].restart(*self.leader.start_state)   # a valid row for the vmapped calls
                 sims[i].reset()
-        pushes = [None if i >= n or tasks[i] is None else tasks[i][1] for i in range(W)]
+        pushes = [None if i >= n or tasks[i] is None else tasks[i].push for i in range(W)]
         control = Lanes(self, lanes)
         res = simulate(sims, control, n_steps, pushes, live)
         for i in range(n):
             if out[i] is not None:
                 continue
             if res.failed[i] is not None:
-                out[i] = ("failed", res.failed[i])
+                out[i] = Outcome.failed(res.failed[i])
                 continue
             lane = lanes[i]
             lane.set_flat_arrays(control.state[i], control.tally[i])
@@ -113,7 +136,7 @@ class Lockstep:
             acc = jax.tree_util.tree_map(operator.itemgetter(i), res.plant)
             flat_cols = metrics.finalize(lane.tally.acc, acc, fell,
                                          lane.state.gait if lane.walking else None)
-            out[i] = ("done", fell, int(res.fell_step[i]), flat_cols)
+            out[i] = Outcome(flat_cols, fell, int(res.fell_step[i]))
         return out
 
 

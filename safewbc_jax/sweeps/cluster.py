@@ -142,7 +142,10 @@ def run_chunk(job: dict, params, push, perturb_v) -> dict:
         errors: dict = {}
         for group in pool.lockstep_groups(len(tasks), job["lockstep"]):
             for i, r in zip(group, lanes.run([tasks[i] for i in group])):
-                (results if r[0] == "done" else errors)[i] = r[1]
+                if r.columns is not None:
+                    results[i] = r.columns
+                else:
+                    errors[i] = r.error
         return pool.columns(lanes.dtypes, len(tasks), results, errors)
     runtime.enable_x64()
     if job.get("cache_dir"):

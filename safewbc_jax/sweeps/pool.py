@@ -25,6 +25,7 @@ use a pool from one thread that outlives it (``run_sweep`` does, from the main t
 
 from __future__ import annotations
 
+import operator
 import os
 import signal
 import time
@@ -111,30 +112,34 @@ class Lanes:
         self.dtypes = {k: np.asarray(v).dtype.str for k, v in template.items()}
 
     def run(self, tasks: list) -> list:
-        """Roll out one lockstep group: per task ("done", metric columns) or ("failed",
-        reason); an exception of the group fails each of its rollouts, with the reason."""
+        """Roll out one lockstep group: an ``Outcome`` per task, with the table's metric
+        columns (``metrics.table_columns``); an exception of the group fails each of its
+        rollouts, with the reason."""
         from safewbc_jax.control import metrics
+        from safewbc_jax.sim.lockstep import Outcome
 
         try:
             res = self.lock.run(tasks, self.n_steps)
-            return [("done", metrics.table_columns(r[3], r[2], self.dt)) if r[0] == "done"
-                    else r for r in res]
+            return [o if o.columns is None else
+                    o._replace(columns=metrics.table_columns(o.columns, o.fell_step, self.dt))
+                    for o in res]
         except Exception as e:  # noqa: BLE001 - the group's rollouts fail, with the reason
             traceback.print_exc()     # to the sweep's stderr: the why of the failure
-            return [("failed", f"{type(e).__name__}: {e}")] * len(tasks)
+            return [Outcome.failed(f"{type(e).__name__}: {e}")] * len(tasks)
 
 
 def chunk_tasks(params, push, perturb_v) -> list:
-    """A chunk's rollouts as lockstep tasks: (params, ``Push``, perturbation) each."""
+    """A chunk's rollouts as lockstep tasks (``RolloutTask``)."""
     import jax
 
+    from safewbc_jax.sim.lockstep import RolloutTask
     from safewbc_jax.sim.push import Push
 
     perturb_v = np.asarray(perturb_v, float)
     leaves = jax.tree_util.tree_map(np.asarray, params)
-    return [(jax.tree_util.tree_map(lambda a: a[i], leaves),  # noqa: B023 - called at once
-             Push.single(push.force[i], float(push.at[i]), float(push.duration[i])),
-             perturb_v[i]) for i in range(perturb_v.shape[0])]
+    return [RolloutTask(jax.tree_util.tree_map(operator.itemgetter(i), leaves),
+                        Push.single(push.force[i], float(push.at[i]), float(push.duration[i])),
+                        perturb_v[i]) for i in range(perturb_v.shape[0])]
 
 
 def lockstep_groups(m: int, width: int) -> list:
@@ -332,10 +337,10 @@ class PoolExecutor:
                         reason = _death_reason(s.proc)
                     else:
                         for i, r in zip(groups[msg[1]], msg[2]):
-                            if r[0] == "done":
-                                results[i] = r[1]
+                            if r.columns is not None:
+                                results[i] = r.columns
                             else:                      # the rollout raised: its own reason
-                                errors[i] = r[1]
+                                errors[i] = r.error
                         s.task = None
                         continue
                 elif s.proc.sentinel in ready or not s.proc.is_alive():

@@ -122,6 +122,122 @@ def preflight(spec: SweepSpec, seed: int | None = None, *, check_poles: bool = T
     return base, std, settings
 
 
+@dataclasses.dataclass
+class SweepPlan:
+    """What ``run_sweep`` settled before its first chunk: the options resolved and checked,
+    the chunk plan written to the folder's manifest, the inputs' common parts, and the
+    chunks this call runs."""
+
+    spec: SweepSpec
+    out: Path
+    seed: int
+    batch: int
+    engine: str              # "mjx" or "mujoco"
+    workers: int | None      # the local pool's (None: mjx, or Ray)
+    width: int               # the mujoco engine's lockstep width
+    chunks: list             # [(start, stop)) of every chunk of the plan
+    manifest: dict
+    base: Any                # preflight's: the fixed params, velocity std, settings
+    std: np.ndarray
+    settings: np.ndarray
+    done: set                # chunks already in the table
+    todo: list               # chunks this call runs
+
+
+def _resolve(spec: SweepSpec, out: Path, batch, seed, engine: str, workers, ray, hosts: int,
+             host_index: int, quiet) -> tuple[int, int, str, int | None]:
+    """(seed, batch, engine, workers) from the options, each checked, naming the option."""
+    from safewbc_jax.sweeps import pool as pool_mod
+
+    if not (hosts >= 1 and 0 <= host_index < hosts):
+        raise ValueError(f"host index {host_index} of {hosts} hosts: expected 0 <= index < hosts")
+    if ray is not None:
+        from safewbc_jax.sweeps import cluster
+
+        if hosts > 1:
+            raise ValueError(f"--ray with --hosts {hosts}: Ray schedules every chunk of the "
+                             "sweep itself; --hosts is for job arrays without Ray")
+        if workers is not None:
+            raise ValueError(f"--ray with --workers {workers}: Ray runs one chunk per CPU "
+                             "of the cluster; --workers is the local pool's")
+        cluster.connect(ray, quiet)
+        engine = cluster.resolve_engine(engine)
+    seed = spec.seed if seed is None else int(seed)
+    if batch == "auto":
+        batch = (cluster.auto_batch(spec, out, engine) if ray is not None else
+                 sizing.auto_batch(spec, out, pool_mod.resolve_engine(engine), quiet))
+    batch = spec.batch if batch is None else int(batch)
+    if batch < 1:
+        raise ValueError(f"--batch must be >= 1, got {batch}")
+    if seed < 0:
+        raise ValueError(f"--seed must be >= 0, got {seed}")
+    asked = engine
+    engine = pool_mod.resolve_engine(engine)
+    if engine == "mujoco" and ray is None:
+        workers = pool_mod.check_workers(workers)
+        if spec.precision != "float64":
+            raise ValueError(f"sweep.precision = {spec.precision!r} is the mjx engine's "
+                             f"(--engine mjx); the mujoco engine runs float64")
+    elif workers is not None:
+        raise ValueError(f"--workers {workers}: only the mujoco engine has workers, and "
+                         f"--engine {asked} runs mjx here (--engine mujoco)")
+    return seed, batch, engine, workers
+
+
+def _manifest(spec: SweepSpec, seed: int, batch: int, n_chunks: int, engine: str,
+              width: int) -> dict:
+    """The folder's plan (``sweep.json``): what a resumed or second host's run must share."""
+    manifest = {"format": 1, "fingerprint": spec.fingerprint(), "seed": seed, "batch": batch,
+                "n_rollouts": spec.n_rollouts, "n_chunks": n_chunks, "scenario": spec.scenario,
+                "spec_path": spec.path, "axes": [a.name for a in spec.axes],
+                "barriers": list(spec.barriers), "monitors": list(spec.monitors),
+                "outputs": list(spec.outputs), "target": spec.target,
+                "violation_tol": spec.violation_tol, "repeats": spec.repeats,
+                "objective": list(spec.tune.get("objective", [])),
+                "objective_weights": dict(spec.tune.get("weights", {})),
+                "safe_sets": list(spec.safe_sets), "engine": engine}
+    if engine == "mujoco":      # rollouts side by side per worker: rounding depends on it
+        manifest["lockstep"] = width
+    return manifest
+
+
+def plan_sweep(spec: SweepSpec, out, *, batch=None, seed=None, executor=None,
+               spec_text: str | None = None, max_chunks: int | None = None,
+               check_poles: bool = True, hosts: int = 1, host_index: int = 0,
+               engine: str = "mjx", workers: int | None = None, ray: str | None = None,
+               quiet=False, say=print) -> SweepPlan:
+    """Every check and the folder's plan, before any chunk runs (``run_sweep``'s
+    arguments): the options, the spec's preflight, the manifest created or matched, the
+    partial files of a killed run removed, the chunks already done found."""
+    from safewbc_jax.sweeps import pool as pool_mod
+
+    out = Path(out)
+    seed, batch, engine, workers = _resolve(spec, out, batch, seed, engine, workers, ray,
+                                            hosts, host_index, quiet)
+    chunks = table_mod.plan_chunks(spec.n_rollouts, batch)
+    width = getattr(executor, "lockstep", None) or pool_mod.lockstep_width(batch)
+    manifest = _manifest(spec, seed, batch, len(chunks), engine, width)
+    base, std, settings = preflight(spec, seed, check_poles=check_poles)
+    table_mod.open_manifest(out, manifest, spec_text)
+    mine = {k for k in range(len(chunks)) if k % hosts == host_index}
+    stale = table_mod.remove_partial(out, mine if hosts > 1 else None)
+    if stale:
+        say(f"[sweep] removed {len(stale)} partial chunk file(s) of an interrupted run")
+    done = table_mod.finished_chunks(out)
+    extra = sorted(k for k in done if k >= len(chunks))
+    if extra:
+        raise table_mod.TableError(f"{out}: chunk files {extra} beyond the plan's {len(chunks)} "
+                                   "chunks; the directory was written by another plan")
+    todo = [k for k in range(len(chunks)) if k not in done and k in mine]
+    if done:
+        say(f"[sweep] {out}: {len(done)}/{len(chunks)} chunks already done, "
+            f"{len(todo)} to run" + (f" on host {host_index} of {hosts}" if hosts > 1 else ""))
+    if max_chunks is not None:
+        todo = todo[:max_chunks]
+    return SweepPlan(spec, out, seed, batch, engine, workers, width, chunks, manifest, base,
+                     std, settings, done, todo)
+
+
 def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | None = None,
               executor: Any = None, progress: Callable | None = None,
               spec_text: str | None = None, max_chunks: int | None = None,
@@ -152,99 +268,55 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     others are written."""
     from safewbc_jax.sweeps import pool as pool_mod
 
-    if not (hosts >= 1 and 0 <= host_index < hosts):
-        raise ValueError(f"host index {host_index} of {hosts} hosts: expected 0 <= index < hosts")
-    if ray is not None:
-        from safewbc_jax.sweeps import cluster
-
-        if hosts > 1:
-            raise ValueError(f"--ray with --hosts {hosts}: Ray schedules every chunk of the "
-                             "sweep itself; --hosts is for job arrays without Ray")
-        if workers is not None:
-            raise ValueError(f"--ray with --workers {workers}: Ray runs one chunk per CPU "
-                             "of the cluster; --workers is the local pool's")
-        cluster.connect(ray, quiet)
-        engine = cluster.resolve_engine(engine)
-    out = Path(out)
-    seed = spec.seed if seed is None else int(seed)
-    if batch == "auto":
-        batch = (cluster.auto_batch(spec, out, engine) if ray is not None else
-                 sizing.auto_batch(spec, out, pool_mod.resolve_engine(engine),
-                                   quiet or progress))
-    batch = spec.batch if batch is None else int(batch)
-    if batch < 1:
-        raise ValueError(f"--batch must be >= 1, got {batch}")
-    if seed < 0:
-        raise ValueError(f"--seed must be >= 0, got {seed}")
-    asked = engine
-    engine = pool_mod.resolve_engine(engine)
-    if engine == "mujoco" and ray is None:
-        workers = pool_mod.check_workers(workers)
-        if spec.precision != "float64":
-            raise ValueError(f"sweep.precision = {spec.precision!r} is the mjx engine's "
-                             f"(--engine mjx); the mujoco engine runs float64")
-    elif workers is not None:
-        raise ValueError(f"--workers {workers}: only the mujoco engine has workers, and "
-                         f"--engine {asked} runs mjx here (--engine mujoco)")
     say = progress if progress is not None else (lambda msg: None) if quiet else (
         lambda msg: print(msg, file=sys.stderr if stream is None else stream, flush=True))
-    n = spec.n_rollouts
-    chunks = table_mod.plan_chunks(n, batch)
-    manifest = {"format": 1, "fingerprint": spec.fingerprint(), "seed": seed, "batch": batch,
-                "n_rollouts": n, "n_chunks": len(chunks), "scenario": spec.scenario,
-                "spec_path": spec.path, "axes": [a.name for a in spec.axes],
-                "barriers": list(spec.barriers), "monitors": list(spec.monitors),
-                "outputs": list(spec.outputs), "target": spec.target,
-                "violation_tol": spec.violation_tol, "repeats": spec.repeats,
-                "objective": list(spec.tune.get("objective", [])),
-                "objective_weights": dict(spec.tune.get("weights", {})),
-                "safe_sets": list(spec.safe_sets), "engine": engine}
-    width = getattr(executor, "lockstep", None) or pool_mod.lockstep_width(batch)
-    if engine == "mujoco":      # rollouts side by side per worker: rounding depends on it
-        manifest["lockstep"] = width
-    base, std, settings = preflight(spec, seed, check_poles=check_poles)
-    table_mod.open_manifest(out, manifest, spec_text)
-    mine = {k for k in range(len(chunks)) if k % hosts == host_index}
-    stale = table_mod.remove_partial(out, mine if hosts > 1 else None)
-    if stale:
-        say(f"[sweep] removed {len(stale)} partial chunk file(s) of an interrupted run")
-    done = table_mod.finished_chunks(out)
-    extra = sorted(k for k in done if k >= len(chunks))
-    if extra:
-        raise table_mod.TableError(f"{out}: chunk files {extra} beyond the plan's {len(chunks)} "
-                                   "chunks; the directory was written by another plan")
-    todo = [k for k in range(len(chunks)) if k not in done and k in mine]
-    if done:
-        say(f"[sweep] {out}: {len(done)}/{len(chunks)} chunks already done, "
-            f"{len(todo)} to run" + (f" on host {host_index} of {hosts}" if hosts > 1 else ""))
-    if not todo:
-        return SweepResult(out, n, len(chunks), 0, len(done), 0.0, float("nan"))
-    if max_chunks is not None:
-        todo = todo[:max_chunks]
-    own = executor is None and engine == "mujoco" and ray is None
+    plan = plan_sweep(spec, out, batch=batch, seed=seed, executor=executor,
+                      spec_text=spec_text, max_chunks=max_chunks, check_poles=check_poles,
+                      hosts=hosts, host_index=host_index, engine=engine, workers=workers,
+                      ray=ray, quiet=quiet or progress is not None, say=say)
+    if not plan.todo:
+        return SweepResult(plan.out, spec.n_rollouts, len(plan.chunks), 0, len(plan.done),
+                           0.0, float("nan"))
+    own = executor is None and plan.engine == "mujoco" and ray is None
     if executor is None and ray is not None:
-        executor = cluster.RayExecutor(spec, engine, lockstep=width, address=ray, quiet=quiet)
-    execute = (executor or (pool_mod.PoolExecutor(spec, workers, lockstep=width) if own
-                            else real_executor()))
+        from safewbc_jax.sweeps import cluster
+
+        executor = cluster.RayExecutor(spec, plan.engine, lockstep=plan.width, address=ray,
+                                       quiet=quiet)
+    execute = (executor or (pool_mod.PoolExecutor(spec, plan.workers, lockstep=plan.width)
+                            if own else real_executor()))
+    key = (None if executor is not None or plan.engine != "mjx" else
+           (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt,
+            plan.batch, spec.safe_sets))
+    try:
+        return _run_chunks(plan, execute, key, say, progress, quiet, desc, stream)
+    finally:
+        if own:
+            execute.close()
+
+
+def _run_chunks(plan: SweepPlan, execute, key, say, progress, quiet, desc,
+                stream) -> SweepResult:
+    """The plan's chunks through ``execute``, each written as its result comes back, with
+    the bar or the progress lines (``run_sweep``)."""
+    import jax
+
+    spec, chunks, todo, batch, out = plan.spec, plan.chunks, plan.todo, plan.batch, plan.out
+    n = spec.n_rollouts
     pads = getattr(execute, "pads", True)
     t0 = t_chunk = time.perf_counter()
     ran = 0
     chunk_times = []
-    import jax
-
     devs = jax.devices()
-    key = (None if executor is not None or engine != "mjx" else
-           (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt, batch,
-            spec.safe_sets))
     where = (execute.describe() if hasattr(execute, "describe") else
              f"on {len(devs)} device{'s' if len(devs) > 1 else ''} ({devs[0].platform})"
-             if engine == "mjx" else
-             f"on {workers} MuJoCo worker{'s' if (workers or 0) > 1 else ''}")
+             if plan.engine == "mjx" else
+             f"on {plan.workers} MuJoCo worker{'s' if (plan.workers or 0) > 1 else ''}")
     say(f"[sweep] {spec.scenario}: {n} rollouts ({spec.n_settings} settings x {spec.repeats}) "
         f"in {len(chunks)} chunk{'s' if len(chunks) > 1 else ''} of {batch} {where}"
         + ("" if key in _COMPILED else "; the first chunk includes compilation"))
     # the bar: this process's rollouts, after those already in the table
-    done_n = sum(chunks[j][1] - chunks[j][0] for j in done)
+    done_n = sum(chunks[j][1] - chunks[j][0] for j in plan.done)
     bar = Progress(desc or "[sweep]", unit="rollouts", initial=done_n,
                    total=done_n + sum(chunks[j][1] - chunks[j][0] for j in todo),
                    phase="rolling out" if key in _COMPILED else "compiling",
@@ -256,8 +328,9 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     def jobs():
         for k in todo:
             start, stop = chunks[k]
-            params, push, dv, pending[k] = chunk_inputs(spec, base, settings,
-                                                        np.arange(start, stop), seed, std)
+            params, push, dv, pending[k] = chunk_inputs(spec, plan.base, plan.settings,
+                                                        np.arange(start, stop), plan.seed,
+                                                        plan.std)
             if stop - start < batch and pads:
                 params, push, dv = jax.tree_util.tree_map(lambda x: _pad(x, batch),
                                                           (params, push, dv))
@@ -288,8 +361,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 cols["error"] = np.full(m, "", dtype=object)
             cols["chunk"] = np.full(m, k, np.int64)
             table_mod.write_chunk(out, k, cols, {"chunk": k, "start": start, "stop": stop,
-                                                "seed": seed,
-                                                "fingerprint": manifest["fingerprint"]})
+                                                "seed": plan.seed,
+                                                "fingerprint": plan.manifest["fingerprint"]})
             ran += m
             if progress is None:       # the bar (nothing with quiet)
                 bar.update(m, "rolling out")
@@ -310,8 +383,6 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
                 + (", first chunk with compilation" if len(chunk_times) == 1 else "") + ")")
     finally:
         bar.close()
-        if own:
-            execute.close()
     el = time.perf_counter() - t0
-    return SweepResult(out, n, len(chunks), len(todo) - len(failed), len(done), el,
+    return SweepResult(out, n, len(chunks), len(todo) - len(failed), len(plan.done), el,
                        ran / el if el > 0 else float("nan"), failed)
