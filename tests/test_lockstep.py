@@ -90,8 +90,9 @@ def test_lockstep_lane_does_not_depend_on_its_neighbours(loop):
     a = _task(ctl, sim, 4, 12.0, 30.0)
     one = lock.run([a, _task(ctl, sim, 5, 4.0, -50.0), _task(ctl, sim, 6, 50.0, 0.0)], 200)
     two = lock.run([a], 200)
-    for name, v in one[0][3].items():
-        np.testing.assert_array_equal(two[0][3][name], v, err_msg=name)
+    assert one[0].columns is not None and two[0].columns is not None
+    for name, v in one[0].columns.items():
+        np.testing.assert_array_equal(two[0].columns[name], v, err_msg=name)
 
 
 @pytest.mark.slow
