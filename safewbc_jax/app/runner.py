@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -59,13 +60,26 @@ def _finite(opt: str, value) -> float:
     return x
 
 
+class RunOptions(NamedTuple):
+    """The effective numeric options of ``safewbc run``: seconds of motion and of settle,
+    walking's speed command (m/s), the push (N, world frame; None: no push), its start (s
+    into the motion) and its duration (s)."""
+
+    duration: float
+    settle: float
+    speed: float
+    push: tuple | None
+    push_at: float
+    push_for: float
+
+
 def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=None,
-                      push=None, push_at=None, push_for=None) -> dict:
+                      push=None, push_at=None, push_for=None) -> RunOptions:
     """Check every numeric option of ``safewbc run`` before anything compiles and fill in
     the defaults. Raises ValueError naming the option, its value and the allowed range;
     an option that would have no effect in this scenario (``--speed`` when not walking,
     ``--at``/``--for`` without a push) is refused rather than ignored. Returns the
-    effective duration, settle, speed, push, push_at and push_for."""
+    effective options (``RunOptions``)."""
     walking = scenario.gait is not None
     duration = scenario.duration if duration is None else _finite("--duration", duration)
     if not 0 < duration <= MAX_DURATION:
@@ -103,9 +117,9 @@ def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=
         if not (0 <= push_at and push_at + push_for <= duration):
             raise ValueError(f"--at {push_at:g} --for {push_for:g}: the push must lie within "
                              f"the {duration:g} s of motion (0 <= at, at + for <= {duration:g})")
-    return dict(duration=duration, settle=settle, speed=DEFAULT_SPEED if speed is None else speed,
-                push=push, push_at=PUSH_AT if push_at is None else push_at,
-                push_for=PUSH_FOR if push_for is None else push_for)
+    return RunOptions(duration, settle, DEFAULT_SPEED if speed is None else speed, push,
+                      PUSH_AT if push_at is None else push_at,
+                      PUSH_FOR if push_for is None else push_for)
 
 
 def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_file=None,
@@ -122,8 +136,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     scenario = scenarios.get_scenario(name, barrier, tuple(safe_sets))
     opts = check_run_options(name, scenario, duration=duration, settle=settle, speed=speed,
                              push=push, push_at=push_at, push_for=push_for)
-    duration, settle, speed = opts["duration"], opts["settle"], opts["speed"]
-    push, push_at, push_for = opts["push"], opts["push_at"], opts["push_for"]
+    duration, settle, speed, push, push_at, push_for = opts
     params = scenario.default_params()
     if params_file is not None:
         params = apply_overrides(params, load_overrides(params_file), str(params_file))
