@@ -72,17 +72,16 @@ def _check_engine(args) -> None:
     compiles)."""
     from safewbc_jax.sweeps.pool import check_workers
 
+    if args.ray is not None:
+        from safewbc_jax.sweeps import cluster
+
+        cluster.check_options(args.ray, workers=args.workers)
     if args.workers is not None:
-        if args.ray is not None:
-            raise ValueError(f"--workers {args.workers} with --ray: Ray runs one chunk per "
-                             "CPU of the cluster; --workers is the local pool's")
         if args.engine == "mjx":
             raise ValueError(f"--workers {args.workers}: only the mujoco engine has workers "
                              "(--engine mujoco)")
         check_workers(args.workers)
     if args.ray is not None:
-        from safewbc_jax.sweeps import cluster
-
         cluster.connect(args.ray, args.quiet)   # a wrong address fails here, in seconds
 
 
@@ -132,9 +131,10 @@ def _cmd_sweep(args) -> int:
             raise ValueError("--distributed reads the hosts from the environment: give it "
                              "or --hosts/--host-index, not both")
         hosts, index = hosts_from_env(os.environ)
-    if args.ray is not None and hosts > 1:
-        raise ValueError(f"--ray with {hosts} hosts: Ray schedules every chunk itself; "
-                         "--hosts and --distributed are for job arrays without Ray")
+    if args.ray is not None:
+        from safewbc_jax.sweeps import cluster
+
+        cluster.check_options(args.ray, hosts)
     spec = load_spec(args.spec)          # every check before anything compiles
     _check_engine(args)
     _compile_cache(args)

@@ -41,6 +41,19 @@ def _ray():
     return ray
 
 
+def check_options(ray: str | None, hosts: int = 1, workers: int | None = None) -> None:
+    """Refuse the options ``--ray`` replaces, naming them: Ray schedules every chunk itself
+    (no ``--hosts``/``--distributed``) on every CPU of the cluster (no ``--workers``)."""
+    if ray is None:
+        return
+    if hosts > 1:
+        raise ValueError(f"--ray with {hosts} hosts: Ray schedules every chunk itself; "
+                         "--hosts and --distributed are for job arrays without Ray")
+    if workers is not None:
+        raise ValueError(f"--workers {workers} with --ray: Ray runs one chunk per CPU of the "
+                         "cluster; --workers is the local pool's")
+
+
 def check_address(address: str) -> None:
     """Raise ClusterError naming ``address`` unless it is "auto", or HOST:PORT (or
     ray://HOST:PORT) with HOST resolvable and PORT accepting a TCP connection within

@@ -154,12 +154,7 @@ def _resolve(spec: SweepSpec, out: Path, batch, seed, engine: str, workers, ray,
     if ray is not None:
         from safewbc_jax.sweeps import cluster
 
-        if hosts > 1:
-            raise ValueError(f"--ray with --hosts {hosts}: Ray schedules every chunk of the "
-                             "sweep itself; --hosts is for job arrays without Ray")
-        if workers is not None:
-            raise ValueError(f"--ray with --workers {workers}: Ray runs one chunk per CPU "
-                             "of the cluster; --workers is the local pool's")
+        cluster.check_options(ray, hosts, workers)
         cluster.connect(ray, quiet)
         engine = cluster.resolve_engine(engine)
     seed = spec.seed if seed is None else int(seed)

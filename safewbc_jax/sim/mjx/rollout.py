@@ -21,8 +21,9 @@ last state and flagged; its metrics stop accumulating. A failed QP is counted an
 last torque; a measurement the controller refuses (a diverging simulation) is counted in
 ``bad_measurements`` and holds it too. Neither touches the other rollouts of the batch.
 
-The batch is sharded over the process's devices (``jax.local_devices()``, leading axis),
-padded to a multiple of the device count. On a CPU with one device it runs in chunks of
+The batch is split over the process's devices (``jax.local_devices()``, leading axis),
+padded to a multiple of the device count, each device running its share with its own loops
+(``_compiled``: a ``shard_map``). On a CPU with one device it runs in chunks of
 ``CPU_CHUNK`` rollouts, one after the other inside the compiled call (``run_batch``'s
 ``chunk``); the chunks and the sub-batched factorisations are chosen by the platform the
 program is lowered for (``chunking.ByPlatform``, ``solvers/lapack_batched.py``), so that
