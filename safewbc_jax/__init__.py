@@ -23,8 +23,8 @@ from safewbc_jax.base.runtime import (CPU_XLA_FLAGS, add_xla_flags, enable_x64, 
 # ``outputs``: what a user's safe set or task is written with).
 _API = {
     "Controller": "safewbc_jax.deploy.controller:Controller",
-    "Command": "safewbc_jax.deploy.controller:Command",
-    "MotorMap": "safewbc_jax.deploy.controller:MotorMap",
+    "Command": "safewbc_jax.deploy.compiled:Command",
+    "MotorMap": "safewbc_jax.deploy.motors:MotorMap",
     "Measurement": "safewbc_jax.control.step:Measurement",
     "ControllerParams": "safewbc_jax.control.params:ControllerParams",
     "Scenario": "safewbc_jax.control.scenario:Scenario",
@@ -81,7 +81,9 @@ if TYPE_CHECKING:
     from safewbc_jax.control.scenario import Scenario
     from safewbc_jax.control.step import Measurement
     from safewbc_jax.control.tasks import Task
-    from safewbc_jax.deploy.controller import Command, Controller, MotorMap
+    from safewbc_jax.deploy.compiled import Command
+    from safewbc_jax.deploy.controller import Controller
+    from safewbc_jax.deploy.motors import MotorMap
     from safewbc_jax.model import robot, spatial
     from safewbc_jax.scenarios import get_scenario
     from safewbc_jax.sim.mjx.plant import BatchConfig, BatchError, default_params

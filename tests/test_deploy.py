@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from safewbc_jax.control import barriers
-from safewbc_jax.deploy import controller as deploy
+from safewbc_jax.control.step import Measurement, state_ok
+from safewbc_jax.deploy import checks as deploy
+from safewbc_jax.deploy.controller import Controller
+from safewbc_jax.deploy.motors import MotorMap
 from safewbc_jax.model import statemap
-from safewbc_jax.deploy.controller import Controller, Measurement, MotorMap
 from safewbc_jax.solvers.result import failed
 from safewbc_jax.solvers.status import SolveStatus
 
@@ -112,7 +114,7 @@ def test_check_state_refuses_exactly_what_the_step_refuses(stand):
             v[3 + rng.integers(v.size - 3)] = deploy.MAX_RATE * (1 + k * ulp)
         else:                                        # a NaN or inf somewhere
             (q if rng.random() < 0.5 else v)[rng.integers(30)] = rng.choice([np.nan, np.inf])
-        ok = bool(deploy.state_ok(q, v))
+        ok = bool(state_ok(q, v))
         reason = deploy.check_state(q, v, q.size, v.size)
         assert (reason == "ok") is ok, (i, reason)
         seen.add((kind, ok))
@@ -333,30 +335,29 @@ def test_control_step_refuses_in_the_graph(squat, stand, case):
     ctl.reset()
     good = ctl.step(Measurement(*stand, 0.0, np.zeros(2)))
     ctl.flush()
-    prepare, conclude = ctl.step_functions(jitted=True)
-    fixed, state, tally0 = ctl.flat_arrays()
+    cs, lay = ctl.compiled, ctl.compiled.layouts
+    prepare, conclude = cs.prepare, cs.conclude
+    fixed = cs.pack_fixed(ctl.params, ctl.start_data, ctl.run_values)
+    state, tally0 = lay.state.pack(ctl.state), lay.tally.pack(ctl.tally)
     st0 = ctl.state
     if case == "stale_time":   # a good state at the time of the last step
         (q, v), f, t = stand, np.zeros(2), 0.0
     else:
         (q, v, f), t = _bad(stand, case), ctl.control_dt
-    meas = ctl.flat_measurement(Measurement(q, v, t, f))
+    meas = cs.flat_measurement(Measurement(q, v, t, f))
     st_flat, prep, _ = prepare(fixed, state, meas)
-    lane = ctl.lane()          # reads the flat vectors back (its own copy)
-    lane.set_flat_arrays(st_flat, tally0)
-    st1 = lane.state
+    st1 = lay.state.unpack(np.asarray(st_flat))
     assert float(st1.prev_t) == float(st0.prev_t) == 0.0 and float(st1.t0) == 0.0
     np.testing.assert_array_equal(st1.last_q, st0.last_q)
     np.testing.assert_array_equal(st1.last_v, st0.last_v)
     n = ctl.last_qp().P.shape[0]
     for x in (np.full(n, np.nan), np.ones(n)):   # a failed solve, a finite wrong answer
         # as the solver's SolveResult (status SOLVED, fallback NONE), flat for the jit
-        sol = ctl.flat_solution(failed(n)._replace(x=x, status=0, fallback=0, iterations=3,
+        sol = cs.flat_solution(failed(n)._replace(x=x, status=0, fallback=0, iterations=3,
                                                    eq_residual=0.0))
         tally_flat, packed = conclude(fixed, tally0, prep, sol)
-        lane.set_flat_arrays(st_flat, tally_flat)
-        tally = lane.tally
-        rec = ctl.unpack_record(packed)[0]
+        tally = lay.tally.unpack(np.asarray(tally_flat))
+        rec = cs.unpack_record(packed)[0]
         assert not bool(rec.ok)
         np.testing.assert_array_equal(rec.u, good.u)
         np.testing.assert_array_equal(tally.last_u, good.u)

@@ -18,7 +18,8 @@ import pytest
 
 from safewbc_jax.control import step as control_step, walking
 from safewbc_jax.model import spatial
-from safewbc_jax.deploy.controller import Controller, Measurement
+from safewbc_jax.control.step import Measurement
+from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.solvers.problem import FIELDS
 from safewbc_jax.solvers import reduce
 

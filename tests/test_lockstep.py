@@ -96,8 +96,8 @@ def test_lockstep_lane_does_not_depend_on_its_neighbours(loop):
 
 
 @pytest.mark.slow
-def test_finish_lanes_is_finish_lane_by_lane(loop):
-    """``Controller.finish_lanes`` (the lockstep's host side: PIQP per lane, the acceptance,
+def test_finish_of_lanes_is_finish_lane_by_lane(loop):
+    """``CompiledStep.finish`` (the lockstep's host side: PIQP per lane, the acceptance,
     expansion, held torque and motor map for all lanes at once) against the same with one
     lane at a time (what one robot's ``step`` runs), on the same rows of the vmapped
     prepare, with fresh solvers on both sides, after a first good step that gives each lane
@@ -107,22 +107,21 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     the torque each lane holds next exactly; the solve records within 1e-12 relative /
     1e-9 absolute (X = x0 + N u is one batched product against one per lane: BLAS may
     round differently; the torques are N's identity block and come out exactly)."""
-    from safewbc_jax.deploy.controller import Controller
-
     ctl, sim, lock = loop
+    cs, lay = ctl.compiled, ctl.compiled.layouts
     sim.reset()
     ctl.restart(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
     meas = sim.sense(0.0)[0]
     rows = lambda a: np.stack([np.asarray(a)] * 3)  # noqa: E731
     # the lockstep's one call a step: this step's prepare, the last step's conclude (none)
-    fixed, state, tally = ctl.flat_arrays()
-    none = (np.zeros((3, ctl.prepared_layout()[0])), np.tile(ctl.no_solution(), (3, 1)))
-    _, prep, packed, *_ = lock._vstep(rows(fixed), rows(state), rows(ctl.flat_measurement(meas)),
-                                      rows(tally), *none)
+    fixed, state, tally = ctl.lane_start(*ctl.start_state)
+    none = (np.zeros((3, lay.prep.size)), np.tile(cs.no_solution, (3, 1)))
+    _, prep, packed, *_ = lock.vstep(rows(fixed), rows(state), rows(cs.flat_measurement(meas)),
+                                     rows(tally), *none)
     prep, packed = np.array(prep), np.array(packed)        # writable copies
     first = [0, 0, 0, 0]
     first_prep, first_packed = prep[first], packed[first]  # the good rows, before the edit
-    _, red, _, checks = ctl.unpack_qp(packed)               # views into packed
+    _, red, _, checks = cs.unpack_qp(packed)               # views into packed
     soft, hard = np.flatnonzero(red.soft[0] > 0), np.flatnonzero(red.soft[0] == 0)
     for lane, row in ((1, soft[0]), (2, hard[0])):          # 0 u <= -1000
         red.G[lane, row] = checks.rows[lane, row] = 0.0
@@ -130,17 +129,15 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     pick = [0, 1, 2, 0]
     prep, packed = prep[pick], packed[pick]
     reasons = ["ok", "ok", "ok", "t = 0.0 does not advance (last step at 0.0)"]
-    batch, single = [ctl.lane() for _ in pick], [ctl.lane() for _ in pick]
-    held, _ = Controller.finish_lanes(batch, first_prep, first_packed, ["ok"] * 4, [-1e-3] * 4,
-                                      0.0)
+    batch, single = [ctl.lane.sibling() for _ in pick], [ctl.lane.sibling() for _ in pick]
+    held, _ = cs.finish(batch, first_prep, first_packed, ["ok"] * 4, [-1e-3] * 4, 0.0)
     for i, lane in enumerate(single):
-        Controller.finish_lanes([lane], first_prep[i:i + 1], first_packed[i:i + 1], ["ok"],
-                                [-1e-3], 0.0)
-    cmds, sols = Controller.finish_lanes(batch, prep, packed, reasons, [0.0] * 4, 0.0)
+        cs.finish([lane], first_prep[i:i + 1], first_packed[i:i + 1], ["ok"], [-1e-3], 0.0)
+    cmds, sols = cs.finish(batch, prep, packed, reasons, [0.0] * 4, 0.0)
     assert [c.fallback for c in cmds] == ["none", "relaxed", "failed", "held"]
     for i, lane in enumerate(single):
-        want, want_sol = Controller.finish_lanes([lane], prep[i:i + 1], packed[i:i + 1],
-                                                 [reasons[i]], [0.0], 0.0)
+        want, want_sol = cs.finish([lane], prep[i:i + 1], packed[i:i + 1], [reasons[i]],
+                                   [0.0], 0.0)
         want, got = want[0], cmds[i]
         assert (got.solve_status, got.fallback, got.measurement) == \
             (want.solve_status, want.fallback, want.measurement)
@@ -154,15 +151,15 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
     assert np.abs(held[2].u).max() > 1.0                       # a real torque, not zeros
     # the torque each lane holds next (a refused measurement), batch against one by one
     refused = ["refused"] * 4
-    nxt, _ = Controller.finish_lanes(batch, prep, packed, refused, [1e-3] * 4, 0.0)
+    nxt, _ = cs.finish(batch, prep, packed, refused, [1e-3] * 4, 0.0)
     for i, lane in enumerate(single):
-        one, _ = Controller.finish_lanes([lane], prep[i:i + 1], packed[i:i + 1], refused[:1],
-                                         [1e-3], 0.0)
+        one, _ = cs.finish([lane], prep[i:i + 1], packed[i:i + 1], refused[:1], [1e-3], 0.0)
         np.testing.assert_array_equal(nxt[i].u, one[0].u)
 
     # a user's solver of the solvers.host protocol with ``solve`` alone (no solve_lanes,
     # lane or reset): one ``solve`` per lane (``solvers.host.solve_lanes``), with PIQP's
     # outcome
+    from safewbc_jax.deploy.compiled import LaneState
     from safewbc_jax.solvers import host
     from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
 
@@ -175,11 +172,9 @@ def test_finish_lanes_is_finish_lane_by_lane(loop):
             return self.inner.solve(qp, checks=checks)
 
     assert isinstance(OnlySolve(), host.HostSolver) and not host.solves_lanes(OnlySolve())
-    own = [ctl.lane() for _ in pick]
-    for lane in own:
-        lane.solver = OnlySolve()
-    Controller.finish_lanes(own, first_prep, first_packed, ["ok"] * 4, [-1e-3] * 4, 0.0)
-    cmds2, _ = Controller.finish_lanes(own, prep, packed, reasons, [0.0] * 4, 0.0)
+    own = [LaneState(OnlySolve(), ctl.model.nu) for _ in pick]
+    cs.finish(own, first_prep, first_packed, ["ok"] * 4, [-1e-3] * 4, 0.0)
+    cmds2, _ = cs.finish(own, prep, packed, reasons, [0.0] * 4, 0.0)
     assert [lane.solver.calls for lane in own] == [2, 2, 2, 1]
     for got, want in zip(cmds2, cmds):
         assert (got.solve_status, got.fallback, got.measurement) == \

@@ -12,7 +12,7 @@ import pytest
 
 from safewbc_jax import scenarios
 from safewbc_jax.control import barriers, step as control_step, outputs, safesets
-from safewbc_jax.deploy import controller as deploy
+from safewbc_jax.deploy import checks as deploy
 from safewbc_jax.control.params import apply_overrides
 from safewbc_jax.control.safesets import SafeSet, SafeSetError
 from safewbc_jax.control.scenario import Scenario
@@ -106,7 +106,7 @@ def stand(ctrl_mj):
 
 @pytest.mark.slow
 def test_theorem_1_is_checked_for_user_safe_sets(rm, stand):
-    """deploy.check_barrier_poles, what Controller.start runs before it compiles."""
+    """checks.check_barrier_poles, what Controller.start runs before it compiles."""
     q, _ = stand
     lean = scenarios.get_scenario("bow", True, (LEAN,))
     p = lean.default_params()

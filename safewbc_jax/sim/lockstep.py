@@ -3,16 +3,16 @@
 One robot's deployment loop (``mujoco_loop.rollout``) pays per control step one call of
 the deployed jitted step, whose cost on a CPU is mostly XLA's per-kernel runtime, not
 arithmetic. A worker that runs ``width`` rollouts side by side pays that runtime once per
-step for all of them: the same jitted functions of ``deploy.Controller`` (its unjitted
-``prepare`` and ``conclude``), vmapped over the lanes. Each lane is its own ``Controller``
-(``Controller.lane``: its own counters, state and PIQP solvers) and its own ``SimRobot``
+step for all of them: the leader controller's ``CompiledStep`` (its unjitted ``prepare``
+and ``conclude``), vmapped over the lanes. Each lane has its own ``LaneState`` (counters,
+held torque, PIQP solver), its own flat state vectors, and its own ``SimRobot``
 (``SimRobot.sibling``: one MjModel, one MjData per lane).
 
 The loop is the one every C MuJoCo driver runs (``sim.loop.simulate``: measurement ->
 control step -> push -> physics -> plant metrics -> fall test), with the lanes' control
-step ``Lanes``: the measurement checks of all lanes at once (``Controller.admit_lanes``),
-the vmapped call, and the host side of the step for all lanes at once
-(``Controller.finish_lanes``: the acceptance, X = x0 + N u, the held-torque rule, the motor
+step ``Lanes``: the measurement checks of all lanes at once (``CompiledStep.admit``), the
+vmapped call, and the host side of the step for all lanes at once
+(``CompiledStep.finish``: the acceptance, X = x0 + N u, the held-torque rule, the motor
 map, the code one robot's step runs with one lane), PIQP still one solve per lane by the
 lane's own solver. A lane whose measurement is refused holds its torque for that step.
 
@@ -39,6 +39,7 @@ import jax
 import numpy as np
 
 from safewbc_jax.control import metrics
+from safewbc_jax.deploy.compiled import LaneState
 from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.sim.mujoco_loop import SimRobot
@@ -68,28 +69,28 @@ class Outcome(NamedTuple):
 
 
 class Lockstep:
-    """``width`` lanes of one started ``Controller`` (``leader``) and its ``SimRobot``;
-    ``run`` rolls out up to ``width`` rollouts at once. ``compile_s``: the seconds
-    ``warm_up`` took (the vmapped step's compile)."""
+    """``width`` lanes of the ``CompiledStep`` of one started ``Controller`` (``leader``,
+    which also checks each rollout's start) and its ``SimRobot``; ``run`` rolls out up to
+    ``width`` rollouts at once. ``compile_s``: the seconds ``warm_up`` took (the vmapped
+    step's compile)."""
 
     def __init__(self, leader: Controller, sim: SimRobot, width: int):
         if int(width) != width or width < 1:
             raise ValueError(f"lockstep width {width}: must be an integer >= 1")
         self.width = int(width)
-        self.leader = leader
-        self.lanes = [leader.lane() for _ in range(self.width)]
+        if leader.compiled is None:
+            raise RuntimeError("Lockstep of a controller before its start(q, v)")
+        self.leader, self.step = leader, leader.compiled
+        self.lanes: list[LaneState] = [leader.lane.sibling() for _ in range(self.width)]
         self.sims = [sim.sibling() for _ in range(self.width)]
-        prepare, conclude = leader.step_functions()
+        prepare, conclude = self.step.prepare_fn, self.step.conclude_fn
 
         def step(fixed, state, flat, tally, prev_prep, prev_sol):
             # one call a control step: the last step's conclude and this step's prepare
             # (independent of each other; one XLA call costs less than two)
             return (*prepare(fixed, state, flat), *conclude(fixed, tally, prev_prep, prev_sol))
 
-        self._vstep = jax.jit(jax.vmap(step))
-        # where tau sits in the flat Prepared vector: the push's clock, read from prepare's
-        # output before that step's conclude has run (StepRecord.tau is Prepared.tau)
-        self._prep_size, self._tau_at = leader.prepared_layout()
+        self.vstep = jax.jit(jax.vmap(step))
         self.compile_s: float | None = None
 
     def warm_up(self) -> float:
@@ -109,20 +110,23 @@ class Lockstep:
         lanes, sims = self.lanes, self.sims
         out: list = [None] * n
         live = np.zeros(W, bool)
+        arrays: list = [None] * W       # each lane's flat (fixed, state, tally)
         for i in range(W):
             t = tasks[i] if i < n else None
             try:
                 params, dv = (None, None) if t is None else (t.params, t.perturb_v)
                 sims[i].reset(dv)
                 q, v = sims[i].sm.to_controller(sims[i].d.qpos, sims[i].d.qvel)
-                lanes[i].restart(q, v, self.leader.params if params is None else params)
+                arrays[i] = self.leader.lane_start(q, v, params)
                 live[i] = i < n
             except Exception as e:  # noqa: BLE001 - this rollout fails, the others run
                 out[i] = Outcome.failed(f"{type(e).__name__}: {e}")
-                lanes[i].restart(*self.leader.start_state)   # a valid row for the vmapped calls
+                arrays[i] = self.leader.lane_start(*self.leader.start_state)  # a valid row
                 sims[i].reset()
+            lanes[i].reset()
         pushes = [None if i >= n or tasks[i] is None else tasks[i].push for i in range(W)]
-        control = Lanes(self, lanes)
+        control = Lanes(self, lanes, arrays)
+        lay = self.step.layouts
         res = simulate(sims, control, n_steps, pushes, live)
         for i in range(n):
             if out[i] is not None:
@@ -130,52 +134,56 @@ class Lockstep:
             if res.failed[i] is not None:
                 out[i] = Outcome.failed(res.failed[i])
                 continue
-            lane = lanes[i]
-            lane.set_flat_arrays(control.state[i], control.tally[i])
+            tally, state = lay.tally.unpack(control.tally[i]), lay.state.unpack(control.state[i])
             fell = bool(res.fell_step[i] >= 0)
             acc = jax.tree_util.tree_map(operator.itemgetter(i), res.plant)
-            flat_cols = metrics.finalize(lane.tally.acc, acc, fell,
-                                         lane.state.gait if lane.walking else None)
+            flat_cols = metrics.finalize(tally.acc, acc, fell,
+                                         state.gait if self.step.walking else None)
             out[i] = Outcome(flat_cols, fell, int(res.fell_step[i]))
         return out
 
 
 class Lanes(LaneControl):
     """The control step of a ``Lockstep``'s lanes for ``loop.simulate``, one rollout each:
-    ``Controller.admit_lanes``, the one vmapped call a step (this step's prepare, the last
-    step's conclude), ``Controller.finish_lanes``. A step's record comes one step later
-    (``concluded``); ``drain`` runs the last step's conclude. ``state``, ``tally``: the
-    lanes' flat vectors (W, .)."""
+    ``CompiledStep.admit``, the one vmapped call a step (this step's prepare, the last
+    step's conclude), ``CompiledStep.finish``. A step's record comes one step later
+    (``concluded``); ``drain`` runs the last step's conclude. ``arrays``: each lane's flat
+    (fixed, state, tally) at its start; ``state``, ``tally``: the lanes' flat vectors
+    (W, .) as the steps go."""
 
-    def __init__(self, lock: Lockstep, lanes: list):
+    def __init__(self, lock: Lockstep, lanes: list[LaneState], arrays: list):
         super().__init__()
-        self.lock, self.lanes = lock, lanes
+        self.lock, self.lanes, self.cs = lock, lanes, lock.step
         W = len(lanes)
-        self.fixed, self.state, self.tally = (np.stack(a) for a in
-                                              zip(*[lane.flat_arrays() for lane in lanes]))
+        self.fixed, self.state, self.tally = (np.stack(a) for a in zip(*arrays))
         self.flat: np.ndarray | None = None
-        self.no_sol = lock.leader.no_solution()
-        self.prev_prep = np.zeros((W, lock._prep_size))
-        self.prev_sol = np.tile(self.no_sol, (W, 1))
+        self.prev_prep = np.zeros((W, self.cs.layouts.prep.size))
+        self.prev_sol = np.tile(self.cs.no_solution, (W, 1))
         self.pending = None     # the lanes the last step's conclude is for
+        # where tau sits in the flat Prepared vector: the push's clock, read from prepare's
+        # output before that step's conclude has run (StepRecord.tau is Prepared.tau)
+        self.tau_at = self.cs.tau_index
 
     def _call(self):
-        return self.lock._vstep(self.fixed, self.state, self.flat, self.tally,
-                                self.prev_prep, self.prev_sol)
+        return self.lock.vstep(self.fixed, self.state, self.flat, self.tally,
+                               self.prev_prep, self.prev_sol)
 
     def _take(self, concluded, new_tally, packed_out):
         """The tally after a step's conclude (for the lanes it ran on), and its record."""
         self.tally = np.where(concluded[:, None], np.asarray(new_tally), self.tally)
-        self.conclude(self.lock.leader.unpack_record(np.asarray(packed_out))[0])
+        self.conclude(self.cs.unpack_record(np.asarray(packed_out))[0])
 
     def step(self, meas: list, live) -> LaneStep:
         t_in = time.perf_counter()
-        lanes, W = self.lanes, len(self.lanes)
+        lanes, W, cs = self.lanes, len(self.lanes), self.cs
         if self.flat is None:          # every lane's row, unused lanes' included
-            self.flat = np.stack([lane.flat_measurement(m) for lane, m in zip(lanes, meas)])
+            rows = [cs.flat_measurement(m) for m in meas]
+            if any(r is None for r in rows):
+                raise RuntimeError("a simulator's measurement is no flat vector of the step")
+            self.flat = np.stack(rows)  # type: ignore[arg-type]
         failed: dict[int, str] = {}
         live_ids = np.flatnonzero(live).tolist()
-        fs, rs = Controller.admit_lanes([lanes[i] for i in live_ids], [meas[i] for i in live_ids])
+        fs, rs = cs.admit([lanes[i] for i in live_ids], [meas[i] for i in live_ids])
         reasons = dict(zip(live_ids, rs))
         for i, f in zip(live_ids, fs):
             if f is None:     # from a simulator this cannot happen: a lane fault
@@ -189,14 +197,14 @@ class Lanes(LaneControl):
         self.state = np.where(live[:, None], np.asarray(new_state), self.state)
         if self.pending is not None:
             self._take(self.pending, new_tally, packed_out)
-        sols = np.tile(self.no_sol, (W, 1))
+        sols = np.tile(cs.no_solution, (W, 1))
         motor = {}
         idx = np.flatnonzero(live)
         ids = idx.tolist()
         every = idx.size == W
         try:
             if idx.size:
-                got, sols[idx] = Controller.finish_lanes(
+                got, sols[idx] = cs.finish(
                     [lanes[i] for i in idx], prep_np if every else prep_np[idx],
                     packed if every else packed[idx], [reasons[i] for i in ids],
                     [meas[i].t for i in ids], t_in)
@@ -205,7 +213,7 @@ class Lanes(LaneControl):
             for i in idx.tolist():
                 failed[i], live[i] = f"{type(e).__name__}: {e}", False
         self.prev_prep, self.prev_sol, self.pending = prep_np, sols, live
-        return LaneStep(motor, prep_np[:, self.lock._tau_at], failed)
+        return LaneStep(motor, prep_np[:, self.tau_at], failed)
 
     def drain(self) -> list:
         if self.pending is not None:     # the last step's conclude (the prepare's rows unused)

@@ -22,7 +22,8 @@ import numpy as np
 from safewbc_jax.base import paths
 from safewbc_jax.control import metrics
 from safewbc_jax.model import robot, statemap
-from safewbc_jax.deploy.controller import Controller, Measurement
+from safewbc_jax.control.step import Measurement
+from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.model.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.control.params import ControllerParams
 from safewbc_jax.sim.push import Push

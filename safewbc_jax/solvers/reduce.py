@@ -178,7 +178,7 @@ def eliminate_equalities_np(qp: QP, bounded=None, p_blockdiag: bool = False):
 
 def expand(u, red: Reduction):
     """X = x0 + N u; leading axes of u and of red's arrays are a batch (the lockstep's
-    lanes on the host: ``deploy.Controller.finish_lanes``)."""
+    lanes on the host: ``deploy.compiled.CompiledStep.finish``)."""
     if u.ndim == 1:
         return red.x0 + red.N @ u
     return red.x0 + (red.N @ u[..., None])[..., 0]

@@ -1,0 +1,324 @@
+"""The deployed step, compiled once: ``prepare`` (with the exact elimination of the QP's
+equality rows) and ``conclude`` jitted on flat float64 vectors, their layouts, and the host
+side of a step over explicit per-lane state.
+
+    step = CompiledStep(ctx, fixed, q, v)          # traces and jits; compiles at first call
+    lane = LaneState(solver, step.nu)              # one robot's host-side state
+    flats, reasons = step.admit([lane], [meas])
+    state, prep, packed = step.prepare(fixed, state, flats[0])
+    cmds, sols = step.finish([lane], prep[None], packed[None], reasons, [meas.t], t_in)
+
+One robot (``deploy.Controller``) runs it with one lane; the lockstep lanes of the
+``mujoco`` sweep engine (``sim.lockstep``) run the unjitted functions vmapped and the host
+side for all their lanes at once. A lane's result does not depend on the other lanes. Every
+argument and result of a step is one float64 vector (``packing.FlatTree``), not a pytree of
+some forty arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from safewbc_jax.control import step as control_step
+from safewbc_jax.control.step import Measurement, state_ok
+from safewbc_jax.deploy.checks import check_measurement
+from safewbc_jax.deploy.packing import FlatTree, Packer
+from safewbc_jax.solvers import host, policy, reduce
+from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_RELAXED, SolveResult,
+                                        failed, fallback_name)
+from safewbc_jax.solvers.status import SolveStatus
+
+
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["u", "motor", "latency_us"],
+                   meta_fields=["solve_status", "fallback", "measurement"])
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """One step's output.
+
+    Attributes:
+        u: joint torques (nu,), in the controller's actuator order.
+        motor: motor torques (nu,), in the robot's motor order (``MotorMap``), clipped to
+            the motor limits.
+        solve_status: the QP's ``SolveStatus``; None where no QP ran.
+        fallback: "none", "relaxed", "failed" (the QP failed: the last good torque is
+            held) or "held" (the measurement was refused: the last good torque is held).
+        measurement: "ok", or why the measurement was refused.
+        latency_us: the step's wall time in microseconds.
+    """
+
+    u: np.ndarray
+    motor: np.ndarray
+    solve_status: SolveStatus | None
+    fallback: str
+    measurement: str
+    latency_us: float
+
+
+class Layouts(NamedTuple):
+    """The flat-vector layout of each argument and result of the compiled step."""
+
+    fixed: FlatTree      # (ControllerParams, scenario.Start, RunValues)
+    state: FlatTree      # control.step.ControllerState
+    tally: FlatTree      # control.step.Tally
+    meas: FlatTree       # control.step.Measurement
+    prep: FlatTree       # control.step.Prepared
+    sol: FlatTree        # solvers.result.SolveResult
+
+
+@dataclasses.dataclass(eq=False)
+class LaneState:
+    """The host side of one robot running a ``CompiledStep``: its solver (of the
+    ``solvers.host`` protocol), its counters, the torque it holds, the time of its last
+    accepted measurement, the wall times of its last good step (prepare, solve; us) and
+    where its last full QP is (the packed full QPs of that call, the row)."""
+
+    solver: Any
+    nu: int
+    steps: int = 0
+    qp_failed: int = 0
+    fallbacks: int = 0
+    bad_measurements: int = 0
+    last_u: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    prev_t: float | None = None
+    last_times: tuple[float, float] = (np.nan, np.nan)
+    last_qp: tuple[Any, int] | None = None
+
+    def __post_init__(self) -> None:
+        self.last_u = np.zeros(self.nu)
+
+    def reset(self) -> None:
+        """Counters zero, no torque held, the clock restarting, the solver set up afresh."""
+        self.steps = self.qp_failed = self.fallbacks = self.bad_measurements = 0
+        self.last_u = np.zeros(self.nu)
+        self.prev_t, self.last_qp = None, None
+        self.last_times = (np.nan, np.nan)
+        host.reset(self.solver)
+
+    def sibling(self) -> LaneState:
+        """A fresh lane with an independent solver of the same settings."""
+        return LaneState(host.lane(self.solver), self.nu)
+
+
+class CompiledStep:
+    """``control.step.prepare`` (with ``solvers.reduce.eliminate_equalities``) and
+    ``control.step.conclude`` of one ``control.step.Context``, on flat vectors.
+
+    Args:
+        ctx: what the step is compiled for (model, scenario, control period, motors).
+        fixed: a template of (ControllerParams, scenario.Start, RunValues), the step's
+            per-run values; only shapes and dtypes are read.
+        q, v: a start state; the QP traced there gives the elimination's static data.
+
+    Attributes:
+        prepare: jitted ``prepare(fixed, state, meas) -> (state, prepared, packed QP)``.
+        conclude: jitted ``conclude(fixed, tally, prepared, solve) -> (tally, packed
+            record)``.
+        prepare_fn, conclude_fn: the same, unjitted (to vmap over lanes).
+        layouts: the ``Layouts`` of the flat vectors.
+        unpack_qp: packed QP -> (full QP, reduced QP, map back to X, ``policy.Checks``).
+        unpack_record: packed record -> (StepRecord, q, v, domain).
+        no_solution: the flat solve record of a step without a solution.
+    """
+
+    def __init__(self, ctx: control_step.Context, fixed: tuple, q: np.ndarray, v: np.ndarray):
+        self.ctx = ctx
+        self.walking = ctx.walking
+        self.nq, self.nv, self.nu = ctx.model.nq, ctx.model.nv, ctx.model.nu
+        state0, tally0 = control_step.init_state(ctx, q, v, np, np.float64)
+        meas0 = Measurement(q, v, 0.0, np.zeros(2))
+        qp0 = jax.jit(lambda *a: control_step.prepare(ctx, *a)[2])(*fixed, state0, meas0)
+        # static data of the elimination, from the QP itself (its block sizes, which of
+        # its variables outside u are bounded, whether P has cross blocks)
+        bounded = reduce.bounded_variables(qp0)
+        p_blockdiag = reduce.p_block_diagonal(qp0)
+        self.nx = int(qp0.P.shape[0])
+        prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
+        L = self.layouts = Layouts(*(FlatTree(t) for t in (fixed, state0, tally0, meas0, prep0,
+                                                          failed(self.nx))))
+        self.no_solution = self.flat_solution(failed(self.nx))
+        qp_packer, out_packer = Packer(), Packer()
+
+        def prepare(fixed, state, meas):
+            state, prep, qpm = control_step.prepare(
+                ctx, *L.fixed.unpack(fixed, jnp), L.state.unpack(state, jnp),
+                L.meas.unpack(meas, jnp))
+            red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
+            return (L.state.pack(state, jnp), L.prep.pack(prep, jnp),
+                    qp_packer.pack((qpm, red, rmap, policy.checks(red, jnp))))
+
+        def conclude(fixed, tally, prep, sol):
+            prep = L.prep.unpack(prep, jnp)
+            tally, out = control_step.conclude(ctx, L.fixed.unpack(fixed, jnp)[2],
+                                               L.tally.unpack(tally, jnp), prep,
+                                               L.sol.unpack(sol, jnp))
+            return (L.tally.pack(tally, jnp),
+                    out_packer.pack((out.record, prep.q, prep.v, prep.domain)))
+
+        self.prepare_fn: Callable = prepare
+        self.conclude_fn: Callable = conclude
+        self.prepare, self.conclude = jax.jit(prepare), jax.jit(conclude)
+        # their layouts are recorded by the first trace of prepare / conclude
+        self.unpack_qp: Callable = qp_packer.unpack
+        self.unpack_record: Callable = out_packer.unpack
+
+    # -- flat vectors
+    def pack_fixed(self, params, start, run: control_step.RunValues) -> np.ndarray:
+        """The per-run values (ControllerParams, the references' start data, RunValues) as
+        the step's flat ``fixed`` vector."""
+        return self.layouts.fixed.pack((params, start, run))
+
+    def initial(self, q, v) -> tuple[np.ndarray, np.ndarray]:
+        """The flat (ControllerState, Tally) before the first step at the start state."""
+        state, tally = control_step.init_state(self.ctx, q, v, np, np.float64)
+        return self.layouts.state.pack(state), self.layouts.tally.pack(tally)
+
+    @property
+    def tau_index(self) -> int:
+        """Where tau sits in the flat Prepared vector."""
+        flat = self.layouts.prep
+        return int(flat.unpack(np.arange(flat.size, dtype=float)).tau)
+
+    def flat_solution(self, res: SolveResult) -> np.ndarray:
+        """A host SolveResult (one QP's, or L's with a leading axis) as conclude's flat
+        vector(s): x, then each scalar field, in ``layouts.sol``'s order."""
+        out = np.empty(np.shape(res.x)[:-1] + (self.nx + len(res) - 1,))
+        out[..., :self.nx] = res.x
+        for k, f in enumerate(res[1:]):
+            out[..., self.nx + k] = f
+        return out
+
+    def flat_measurement(self, meas: Measurement) -> np.ndarray | None:
+        """The measurement as the step's flat vector (q, v, sole forces, t), or None where
+        it cannot be one (shapes, types; sole forces missing while walking)."""
+        try:
+            q, v = np.asarray(meas.q, float), np.asarray(meas.v, float)
+            f = (np.zeros(2) if meas.sole_force is None and not self.walking
+                 else np.asarray(meas.sole_force, float))
+            if q.shape != (self.nq,) or v.shape != (self.nv,) or f.shape != (2,):
+                return None
+            return np.concatenate([q, v, f, [float(meas.t)]])
+        except (TypeError, ValueError):
+            return None
+
+    # -- the host side of a step
+    def admit_one(self, lane: LaneState, meas: Measurement) -> tuple[np.ndarray | None, str]:
+        """Count the step and check the measurement (``check_measurement``, and that t
+        advances). Returns (its flat vector, or None where it cannot enter the step; "ok"
+        or why it is refused)."""
+        lane.steps += 1
+        reason = check_measurement(meas, self.walking, self.nq, self.nv)
+        if reason == "ok" and lane.prev_t is not None and not meas.t > lane.prev_t:
+            reason = f"t = {meas.t} does not advance (last step at {lane.prev_t})"
+        if reason != "ok":
+            lane.bad_measurements += 1
+        return self.flat_measurement(meas), reason
+
+    def admit(self, lanes: list[LaneState], meas: list) -> tuple[list, list[str]]:
+        """``admit_one`` for several lanes: the state test (``state_ok``) and the time tests
+        run once over the stacked measurements; a lane whose measurement fails one of
+        them, or cannot be stacked, goes through ``admit_one``, which names the reason."""
+        try:
+            flat = np.stack([self.flat_measurement(m) for m in meas])  # type: ignore[misc]
+        except (TypeError, ValueError):      # some measurement cannot be a flat vector
+            flat = None
+        if flat is None or flat.dtype != np.float64:
+            out = [self.admit_one(lane, m) for lane, m in zip(lanes, meas)]
+            return [f for f, _ in out], [r for _, r in out]
+        nq, nv = self.nq, self.nv
+        t = flat[:, -1]
+        prev = np.array([-np.inf if lane.prev_t is None else lane.prev_t for lane in lanes])
+        good = (state_ok(flat[:, :nq], flat[:, nq:nq + nv]) & np.isfinite(t) & (t > prev)
+                & np.isfinite(flat[:, nq + nv:-1]).all(axis=1))
+        reasons = ["ok"] * len(lanes)
+        for i, lane in enumerate(lanes):
+            if good[i]:
+                lane.steps += 1
+            else:
+                reasons[i] = self.admit_one(lane, meas[i])[1]
+        return list(flat), reasons
+
+    def solve(self, lanes: list[LaneState], packed: np.ndarray, ts, t_in: float,
+              t_step: float) -> tuple[list[Command], np.ndarray, SolveResult, np.ndarray,
+                                      np.ndarray]:
+        """The host side of a step for lanes with accepted measurements, from the jitted
+        prepare's packed QPs (leading axis L): each lane's reduced QP by its own solver
+        (``solvers.host.solve_lanes``), X = x0 + N u, the usable test, the held-torque
+        rule, the motor map and each lane's counters.
+
+        Returns:
+            (the Commands; conclude's flat solve records (L, .); the SolveResult, x over
+            the full X and NaN where not usable, eq_residual of the full QP; X; usable).
+        """
+        qpm, red, rmap, checks = self.unpack_qp(packed)
+        t1 = time.perf_counter()
+        res = host.solve_lanes([lane.solver for lane in lanes], red, checks)
+        x = reduce.expand(res.x, rmap)
+        usable = (res.fallback != FALLBACK_FAILED) & np.isfinite(x).all(axis=-1)
+        eq = np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b).max(axis=-1)
+        res = res._replace(x=x, eq_residual=eq)
+        if not usable.all():      # rare: failed()'s fields on those rows, with the
+            res = SolveResult(*(np.array(f) for f in res))   # solver's status, or
+            for i in np.flatnonzero(~usable).tolist():       # NUMERICAL for a non-finite X
+                status = (res.status[i] if res.fallback[i] == FALLBACK_FAILED
+                          else SolveStatus.NUMERICAL)
+                bad = failed(self.nx, status)._replace(iterations=res.iterations[i])
+                for f, v in zip(res, bad):
+                    f[i] = v
+        t2 = time.perf_counter()
+        last_u = np.stack([lane.last_u for lane in lanes])
+        u = control_step.hold_torque(res.x, usable[:, None], last_u, qpm.blocks)
+        motor = self.ctx.motors.to_motor(u)
+        sols = self.flat_solution(res)
+        times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6 / len(lanes))
+        t_out = (time.perf_counter() - t_in) * 1e6
+        cmds = []
+        for j, lane in enumerate(lanes):
+            fb = int(res.fallback[j])
+            lane.last_times, lane.last_qp = times, (qpm, j)
+            lane.qp_failed += fb == FALLBACK_FAILED
+            lane.fallbacks += fb == FALLBACK_RELAXED
+            lane.last_u, lane.prev_t = u[j], ts[j]
+            cmds.append(Command(u[j].copy(), motor[j], SolveStatus(int(res.status[j])),
+                                fallback_name(fb), "ok", t_out))
+        return cmds, sols, res, x, usable
+
+    def hold(self, lane: LaneState, reason: str, t_in: float) -> Command:
+        """A refused measurement's step: no solve, the lane's last good torque held."""
+        lane.last_times = (np.nan, np.nan)
+        return self.command(lane.last_u, None, "held", reason, t_in)
+
+    def finish(self, lanes: list[LaneState], prep: np.ndarray, packed: np.ndarray,
+               reasons: list[str], ts, t_in: float) -> tuple[list[Command], np.ndarray]:
+        """The host side of a step for several lanes, from the rows of the prepare
+        (``prep``, ``packed``: leading axis L): the lanes whose measurement was accepted
+        through ``solve`` together, the others hold their torque (``hold``). ``ts``: the
+        measurements' times. Returns (the Commands, conclude's flat solve records (L, .))."""
+        sols = np.tile(self.no_solution, (len(lanes), 1))
+        cmds: list = [None] * len(lanes)
+        ok = np.array([r == "ok" for r in reasons])
+        for i in np.flatnonzero(~ok).tolist():
+            cmds[i] = self.hold(lanes[i], reasons[i], t_in)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            every = idx.size == len(lanes)
+            got, sols[idx], *_ = self.solve(
+                lanes if every else [lanes[i] for i in idx], packed if every else packed[idx],
+                ts if every else [ts[i] for i in idx], t_in, t_in)
+            for i, c in zip(idx.tolist(), got):
+                cmds[i] = c
+        return cmds, sols
+
+    def command(self, u, status: SolveStatus | None, fallback: str, reason: str,
+                t_in: float) -> Command:
+        """A Command of the torques u, timed from ``t_in`` (``time.perf_counter``)."""
+        u = np.array(u)
+        return Command(u, self.ctx.motors.to_motor(u), status, fallback, reason,
+                       (time.perf_counter() - t_in) * 1e6)
