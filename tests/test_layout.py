@@ -153,3 +153,24 @@ def test_every_folder_and_module_is_in_the_what_is_here_table():
     missing = [str(p.relative_to(ROOT)) for p in sorted(PKG.rglob("*.py"))
                if p.name != "__init__.py" and f"`{p.name}`" not in table]
     assert not missing, f"not in docs/index.md's 'What is here': {missing}"
+
+
+# attributes with a leading underscore that are public by convention (NamedTuple's API,
+# os._exit), and MJX's Data._impl, where MJX keeps its JAX implementation's contacts and
+# constraint forces
+PUBLIC_UNDERSCORE = {"_replace", "_fields", "_asdict", "_make", "_field_defaults", "_exit",
+                     "_impl"}
+
+
+def test_no_module_touches_another_objects_private_attributes():
+    """An attribute with a leading underscore is read or written only through ``self`` or
+    ``cls``: no object reaches into another's private fields."""
+    found = []
+    for path in sorted(PKG.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                    and not node.attr.startswith("__") and node.attr not in PUBLIC_UNDERSCORE
+                    and not (isinstance(node.value, ast.Name)
+                             and node.value.id in ("self", "cls"))):
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
+    assert not found, "\n".join(found)

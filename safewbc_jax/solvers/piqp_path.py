@@ -259,7 +259,7 @@ class PiqpSolver:
         rows = [qp.row(k) for k in range(L)]
         for k, s in enumerate(solvers):
             t0 = time.perf_counter_ns()
-            X[k], status[k], iters[k] = s._solve_nominal(rows[k])
+            X[k], status[k], iters[k] = s.solve_nominal(rows[k])
             s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
         tol = np.array([s.feas_tol for s in solvers])
         status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)
@@ -275,7 +275,7 @@ class PiqpSolver:
             nom = Attempt(x=X[k], status=int(status[k]), res=(eq[k], ineq[k], hard[k]),
                           max_slack=0.0, iterations=int(iters[k]), polished=False,
                           polish_iterations=0)
-            r = policy.finish(nom, s._solve_relaxed(rows[k], n, mi), np)
+            r = policy.finish(nom, s.solve_relaxed(rows[k], n, mi), np)
             for field, a in zip(SolveResult._fields, out):
                 a[k] = getattr(r, field)
             s.last_solve_time_us += (time.perf_counter_ns() - t0) / 1e3
@@ -298,7 +298,7 @@ class PiqpSolver:
         self.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
         return row(one, 0)
 
-    def _solve_nominal(self, qp: QP, initvals=None):
+    def solve_nominal(self, qp: QP, initvals=None):
         """(a): PIQP on the QP as posed: (x, all NaN where PIQP gave none; its status;
         iterations). A solver exception is a failed solve (NUMERICAL) and a fresh backend,
         never a crash."""
@@ -309,7 +309,7 @@ class PiqpSolver:
             x, status, iters = None, SolveStatus.NUMERICAL, 0
         return (np.full(qp.P.shape[0], np.nan) if x is None else x), status, iters
 
-    def _solve_relaxed(self, qp: QP, n: int, mi: int) -> Attempt:
+    def solve_relaxed(self, qp: QP, n: int, mi: int) -> Attempt:
         """(b): the relaxed QP, its slack columns of hard rows left out."""
         try:
             qp_r = relax_soft_rows_np(qp, self.relax_rho, self.relax_rho_lin)

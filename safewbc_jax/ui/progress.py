@@ -63,6 +63,13 @@ class _Bar(tqdm):
 
     rate_origin = None
 
+    def use_clock(self, clock) -> None:
+        """Read time from ``clock`` (a function of no arguments, in s)."""
+        self._time = clock
+
+    def now(self) -> float:
+        return self._time()
+
     @property
     def format_dict(self):
         d = super().format_dict
@@ -131,7 +138,7 @@ class Progress:
             # never drawn (mininterval inf): used for its counting and its format
             self._bar = _Bar(file=_Null(), mininterval=float("inf"), **kw)
         # (the tty bar was made with a tiny delay so that it draws nothing before this)
-        self._bar._time = self._clock
+        self._bar.use_clock(self._clock)
         self._bar.start_t = self._bar.last_print_t = self._clock()
         self._bar.delay = 0
         if self.tty:
@@ -179,7 +186,7 @@ class Progress:
         if bar is None:
             return
         if old in self.warmup and phase not in self.warmup:
-            bar.rate_origin = (bar.n, bar._time())
+            bar.rate_origin = (bar.n, bar.now())
         bar.set_postfix_str(phase, refresh=self.tty)
         if not self.tty:
             self._line()
