@@ -65,7 +65,7 @@ def missing_packages() -> list[str]:
 
 
 def pushes(batch: int, seed: int):
-    from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR, Push
+    from safewbc_jax.control.push import PUSH_AT, PUSH_FOR, Push
 
     fy = -30.0 * np.random.default_rng(seed).uniform(0, 1, batch)
     return Push(np.stack([np.zeros(batch), fy, np.zeros(batch)], 1),

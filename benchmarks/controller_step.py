@@ -51,7 +51,7 @@ def _round(x):
 def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
     from safewbc_jax import scenarios
     from safewbc_jax.control import metrics
-    from safewbc_jax.sim.push import Push
+    from safewbc_jax.control.push import Push
     from safewbc_jax.app.runner import check_run_options
     from safewbc_jax.sim.mujoco_loop import RunConfig, run
 

@@ -94,7 +94,7 @@ def fixture_part() -> None:
 
 def closed_part(scenarios, batch: int, duration) -> None:
     from safewbc_jax.sim.mjx.rollout import BatchConfig, default_params, run_batch
-    from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR, Push
+    from safewbc_jax.control.push import PUSH_AT, PUSH_FOR, Push
 
     rng = np.random.default_rng(0)
     print(f"\nclosed loop: mixed against float64, {batch} rollouts each, lateral pushes")

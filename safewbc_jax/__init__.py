@@ -36,7 +36,7 @@ _API = {
     "default_params": "safewbc_jax.sim.mjx.plant:default_params",
     "run_batch": "safewbc_jax.sim.mjx.rollout:run_batch",
     "export": "safewbc_jax.sim.mjx.rollout:export",
-    "Push": "safewbc_jax.sim.push:Push",
+    "Push": "safewbc_jax.control.push:Push",
     "load_at_stand": "safewbc_jax.sim.mujoco_loop:load_at_stand",
     "run_scenario": "safewbc_jax.app.runner:run_scenario",
     "format_summary": "safewbc_jax.app.runner:format_summary",
@@ -89,7 +89,7 @@ if TYPE_CHECKING:
     from safewbc_jax.sim.mjx.plant import BatchConfig, BatchError, default_params
     from safewbc_jax.sim.mjx.rollout import export, run_batch
     from safewbc_jax.sim.mujoco_loop import load_at_stand
-    from safewbc_jax.sim.push import Push
+    from safewbc_jax.control.push import Push
     from safewbc_jax.solvers import solve_qp
     from safewbc_jax.solvers.problem import QP
     from safewbc_jax.solvers.result import SolveResult

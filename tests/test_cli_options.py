@@ -110,7 +110,7 @@ def test_check_run_options_defaults():
     from safewbc_jax.app import runner
 
     o = runner.check_run_options("push", scenarios.get_scenario("push"))
-    assert o.push == runner.PAPER_PUSH and o.push_at == runner.PUSH_AT
+    assert o.push == scenarios.PAPER_PUSH and o.push_at == runner.PUSH_AT
     assert o.push_for == runner.PUSH_FOR and o.speed == 0.2 and o.duration == 8.0
     o = runner.check_run_options("squat", scenarios.get_scenario("squat"), duration=3)
     assert o.push is None and o.duration == 3.0

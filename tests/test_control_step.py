@@ -11,7 +11,7 @@ from safewbc_jax import scenarios
 from safewbc_jax.control import metrics
 from safewbc_jax.control.step import (FALL_HEIGHT, MAX_RATE, MAX_SPEED, QUAT_TOL, fallen,
                                       state_ok)
-from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR, Push, force_at
+from safewbc_jax.control.push import PUSH_AT, PUSH_FOR, Push, force_at
 
 
 def _state():
@@ -108,7 +108,7 @@ def test_half_time_is_the_first_step_of_the_second_half(n_steps, settle, dt):
 
 def test_finalize_of_an_empty_run_is_nan_not_inf():
     sc = scenarios.get_scenario("arms")
-    flat = metrics.finalize(metrics.control_init(sc), metrics.plant_init(), False)
+    flat = metrics.finalize(sc, metrics.control_init(sc), metrics.plant_init(), False)
     for key in ("zmp_margin_min", "eq_residual_max", "tracking_rms.com",
                 "barrier_min.left_fist", "torso_pitch_max_reached"):
         assert np.isnan(flat[key]), key

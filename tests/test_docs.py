@@ -16,10 +16,14 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # page -> identifiers that must each have a heading of their own on it
 API = {
-    "api/deploy": ["safewbc_jax.deploy.controller.Controller", "safewbc_jax.deploy.controller.Controller.start",
-                   "safewbc_jax.deploy.controller.Controller.step", "safewbc_jax.deploy.controller.Controller.flush",
-                   "safewbc_jax.deploy.controller.Measurement", "safewbc_jax.deploy.controller.Command",
-                   "safewbc_jax.deploy.controller.MotorMap", "safewbc_jax.deploy.controller.check_barrier_poles"],
+    "api/deploy": ["safewbc_jax.deploy.controller.Controller",
+                   "safewbc_jax.deploy.controller.Controller.start",
+                   "safewbc_jax.deploy.controller.Controller.step",
+                   "safewbc_jax.deploy.controller.Controller.flush",
+                   "safewbc_jax.control.step.Measurement", "safewbc_jax.deploy.compiled.Command",
+                   "safewbc_jax.deploy.motors.MotorMap",
+                   "safewbc_jax.deploy.checks.check_barrier_poles",
+                   "safewbc_jax.deploy.compiled.CompiledStep"],
     "api/safesets": ["safewbc_jax.control.safesets.SafeSet", "safewbc_jax.control.safesets.load"],
     "api/tasks": ["safewbc_jax.control.tasks.Task"],
     "api/scenario": ["safewbc_jax.control.scenario.Scenario"],

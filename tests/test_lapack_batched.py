@@ -153,7 +153,7 @@ def test_batched_rollout_has_no_controller_call_that_waits_on_the_pool():
     (36 x 36 Cholesky with 43 right-hand sides, 22 x 22 LU) and the polish set-up were
     over it, and this closed loop hung at 64 and 256 rollouts per chunk."""
     from safewbc_jax.sim.mjx import rollout as R
-    from safewbc_jax.sim.push import Push
+    from safewbc_jax.control.push import Push
 
     b = R.CPU_CHUNK
     cfg = R.BatchConfig("walk", duration=0.05, settle=1.0)

@@ -35,7 +35,7 @@ def loop():
 def _task(ctl, sim, seed, p1, push_y):
     import dataclasses
 
-    from safewbc_jax.sim.push import Push
+    from safewbc_jax.control.push import Push
 
     poles = {**ctl.params.poles, "left_fist": np.array([p1, 10.0])}
     params = dataclasses.replace(ctl.params, poles=poles)
@@ -50,7 +50,7 @@ def _single(ctl, sim, task):
     sim.reset(task[2])
     ctl.restart(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), task[0])
     fell, fell_step, plant = rollout(sim, ctl, N_STEPS, task[1])
-    return fell, fell_step, metrics.finalize(ctl.tally.acc, plant, fell, None)
+    return fell, fell_step, metrics.finalize(ctl.scenario, ctl.tally.acc, plant, fell, ctl.state.gait)
 
 
 @pytest.mark.slow

@@ -80,7 +80,7 @@ MIXED_CHILD = textwrap.dedent("""
     import numpy as np
     import safewbc_jax
     from safewbc_jax.sim.mjx.rollout import BatchConfig, default_params, run_batch
-    from safewbc_jax.sim.push import Push
+    from safewbc_jax.control.push import Push
 
     safewbc_jax.enable_x64()
     job, out = json.loads(sys.argv[1]), sys.argv[2]

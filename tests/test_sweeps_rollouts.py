@@ -156,7 +156,8 @@ def test_killed_sweep_keeps_a_readable_table_and_resumes(sweeps):
     assert not cols["fell"].any()
     assert np.all(cols["qp_failed"] == 0)
     assert np.all(cols["qp_solved"] + cols["fallbacks"] == 1050)
-    assert np.all((cols["barrier_min.left_fist"] > 0.035) & (cols["barrier_min.left_fist"] < 0.0505))
+    hmin = cols["barrier_min.left_fist"]
+    assert np.all((hmin > 0.035) & (hmin < 0.0505))
     assert np.all(cols["foot_slip_max"] < 0.005)
     assert np.all(cols["perturb.norm"] > 0.01)
     # the perturbations differ between rollouts, and so do the outcomes

@@ -2,6 +2,8 @@
 Parquet table and the report figures: everything of the sweep layer that needs no
 rollout. The rollouts themselves are in test_sweeps_rollouts.py."""
 
+import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -37,6 +39,15 @@ def spec_from(tmp_path, text, name="s.toml"):
     return load_spec(p)
 
 
+def manifest(**kw) -> table_mod.Manifest:
+    """A sweep folder's manifest: made-up values, ``kw`` replacing them."""
+    base = dict(fingerprint="abc", seed=1, batch=4, n_rollouts=10, n_chunks=3, scenario="arms",
+                spec_path="s.toml", axes=(), barriers=("left_fist",), monitors=("right_fist",),
+                outputs=("com", "arms"), target="left_fist", violation_tol=0.0, repeats=1,
+                objective=("tracking_rms.arms",))
+    return table_mod.Manifest(**{**base, **kw})
+
+
 def test_shipped_specs_are_valid():
     targets = {"kalpha_poles": "left_fist", "gains": "left_fist", "push_forces": "swing_foot",
                "kalpha_poles_walk": "swing_foot"}
@@ -49,7 +60,8 @@ def test_shipped_specs_are_valid():
     assert [a.name for a in s.axes] == ["push.magnitude", "push.direction", "push.at"]
     s = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
     assert [a.name for a in s.axes] == ["poles.left_fist.p1", "poles.left_fist.p2"]
-    assert s.axes[0].values[0] == pytest.approx(2.0) and s.axes[0].values[-1] == pytest.approx(128.0)
+    assert s.axes[0].values[0] == pytest.approx(2.0)
+    assert s.axes[0].values[-1] == pytest.approx(128.0)
     assert s.n_settings == 49
 
 
@@ -57,10 +69,11 @@ def test_kalpha_poles_spec_reaches_the_barrier(stand, ctrl_mj):
     """A pole sweep measures nothing unless its barrier acts. Along the arm reference of
     ``sweeps/kalpha_poles.toml`` (the scenario's own arm task reference, paper eqs. 35-36,
     from its start data at the stand pose; the other joints held), the left fist's h(q)
-    (eq. 33, the barrier's own function) must go below zero within the spec's duration. It stays above +40 mm for the
-    first 4 s (the fist goes down first): the spec's old 4 s duration swept a barrier that
-    never acted. Pure kinematics on a 1 ms grid; the bounds are tens of mm from the
-    computed values (h(0) = +50 mm, zero crossed at 5.6 s, -101 mm at 7.5 s)."""
+    (eq. 33, the barrier's own function) must go below zero within the spec's duration. It
+    stays above +40 mm for the first 4 s (the fist goes down first): the spec's old 4 s
+    duration swept a barrier that never acted. Pure kinematics on a 1 ms grid; the bounds
+    are tens of mm from the computed values (h(0) = +50 mm, zero crossed at 5.6 s, -101 mm
+    at 7.5 s)."""
     import jax
     import jax.numpy as jnp
 
@@ -106,7 +119,8 @@ def test_grid_plan_is_row_major(tmp_path):
     arr = s.settings_array()
     assert arr.shape == (12, 3)
     # the last axis varies fastest, as setting() says
-    assert s.setting(0) == {"poles.left_fist.p1": 2.0, "poles.left_fist.p2": 1.0, "push.magnitude": 0.0}
+    assert s.setting(0) == {"poles.left_fist.p1": 2.0, "poles.left_fist.p2": 1.0,
+                            "push.magnitude": 0.0}
     assert s.setting(1)["push.magnitude"] == 50.0
     assert s.setting(2)["poles.left_fist.p2"] == pytest.approx(10.0)
     assert s.setting(11) == {"poles.left_fist.p1": 8.0, "poles.left_fist.p2": pytest.approx(100.0),
@@ -131,7 +145,8 @@ def test_grid_plan_is_row_major(tmp_path):
     ('[sweep]\nscenario = "arms"\n[grid]\nmu = 0.5', "grid.mu = 0.5: expected a list of numbers"),
     ('[sweep]\nscenario = "arms"\n[grid]\nmu = [0.5, "x"]', 'grid.mu[1] = "x": expected a number'),
     ('[sweep]\nscenario = "arms"\n[grid]\nmu = {range = [1, 2]}', "grid.mu = {'range'"),
-    ('[sweep]\nscenario = "arms"\n[perturb]\njoints = "lots"', 'perturb.joints = "lots": expected a number'),
+    ('[sweep]\nscenario = "arms"\n[perturb]\njoints = "lots"',
+     'perturb.joints = "lots": expected a number'),
     # empty grids
     ('[sweep]\nscenario = "arms"\n[grid]\nmu = []', "grid.mu = []: empty grid"),
     ('[sweep]\nscenario = "arms"\n[grid]\nmu = {linspace = [0.3, 0.9, 0]}', "gives an empty grid"),
@@ -140,15 +155,18 @@ def test_grid_plan_is_row_major(tmp_path):
      'grid."poles.left_fist.p1" = [1.0, 0.0]: pole 0.0 is not > 0'),
     ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist" = [-2.0]', "pole -2.0 is not > 0"),
     ('[sweep]\nscenario = "arms"\n[params.poles]\nleft_fist = [0.0, 5.0]', "poles must be > 0"),
-    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist.p3" = [1.0]', "'p3' is not a pole of 'left_fist'"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.left_fist.p3" = [1.0]',
+     "'p3' is not a pole of 'left_fist'"),
     # unknown scenario, barrier, output
     ('[sweep]\nscenario = "dance"', 'sweep.scenario = "dance": no such scenario'),
     ('[sweep]\nscenario = "walk"\n[grid]\n"poles.left_fist.p1" = [1.0]', "no barrier 'left_fist'"),
     ('[sweep]\nbarrier = true', "sweep.scenario is missing"),
-    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.right_foot.p1" = [1.0]', "no barrier 'right_foot'"),
+    ('[sweep]\nscenario = "arms"\n[grid]\n"poles.right_foot.p1" = [1.0]',
+     "no barrier 'right_foot'"),
     ('[sweep]\nscenario = "squat"\ntarget = "left_fist"', 'sweep.target = "left_fist": no barrier'),
     ('[sweep]\nscenario = "arms"\n[grid]\n"kp.legs" = [10.0]', "kp.OUTPUT with OUTPUT one of"),
-    ('[sweep]\nscenario = "arms"\n[tune]\nobjective = ["tracking_rms.legs"]', "'tracking_rms.legs' is not a metric to minimize"),
+    ('[sweep]\nscenario = "arms"\n[tune]\nobjective = ["tracking_rms.legs"]',
+     "'tracking_rms.legs' is not a metric to minimize"),
     # other bad values
     ('[sweep]\nscenario = "arms"\nduration = -1.0', "sweep.duration = -1.0: must be > 0"),
     ('[sweep]\nscenario = "arms"\n[grid]\n"push.magnitude" = [-5.0]', "magnitudes must be >= 0"),
@@ -157,7 +175,8 @@ def test_grid_plan_is_row_major(tmp_path):
      'grid."poles.left_fist" and grid."poles.left_fist.p1" both set the poles of '
      "'left_fist'; sweep one or the other"),
     ('[sweep]\nscenario = "arms"\n[grid]\nmu = [0.5, 0.5]', "repeated values"),
-    ('[sweep]\nscenario = "arms"\n[tune]\nshrink = 1.5', "tune.shrink = 1.5: must be between 0 and 1"),
+    ('[sweep]\nscenario = "arms"\n[tune]\nshrink = 1.5',
+     "tune.shrink = 1.5: must be between 0 and 1"),
     ('[sweep\nscenario = "arms"', "not valid TOML"),
 ])
 def test_each_bad_spec_gets_one_clear_error(tmp_path, text, needle):
@@ -258,7 +277,7 @@ def test_chunk_plan_and_atomic_parquet(tmp_path):
     assert table_mod.plan_chunks(10, 4) == [(0, 4), (4, 8), (8, 10)]
     assert table_mod.plan_chunks(8, 4) == [(0, 4), (4, 8)]
     out = tmp_path / "sw"
-    man = {"fingerprint": "abc", "seed": 1, "batch": 4, "n_rollouts": 10}
+    man = manifest()
     table_mod.open_manifest(out, man, "x = 1\n")
     table_mod.write_chunk(out, 1, {"rollout": np.arange(4, 8), "h": np.linspace(0, 1, 4)})
     table_mod.write_chunk(out, 0, {"rollout": np.arange(0, 4), "h": np.zeros(4)})
@@ -272,8 +291,8 @@ def test_chunk_plan_and_atomic_parquet(tmp_path):
     # resuming with another seed / batch / spec is refused, naming what differs
     for key, val in (("seed", 2), ("batch", 8), ("fingerprint", "other")):
         with pytest.raises(table_mod.TableError, match=f"{key} = "):
-            table_mod.open_manifest(out, {**man, key: val})
-    assert table_mod.open_manifest(out, dict(man))["seed"] == 1
+            table_mod.open_manifest(out, dataclasses.replace(man, **{key: val}))
+    assert table_mod.open_manifest(out, man).seed == 1
     with pytest.raises(table_mod.TableError, match="not a sweep directory"):
         table_mod.read_manifest(tmp_path)
 
@@ -283,15 +302,86 @@ def test_a_second_plan_never_replaces_the_first(tmp_path):
     batch is refused even before any chunk has finished, the file is left as the first
     host wrote it, and a host with the same plan gets it back."""
     out = tmp_path / "shared"
-    man = {"fingerprint": "abc", "seed": 1, "batch": 4, "n_rollouts": 10, "engine": "mjx"}
+    man = manifest(engine="mjx")
     assert table_mod.open_manifest(out, man, "x = 1\n") == man
     first = (out / table_mod.MANIFEST).read_bytes()
     with pytest.raises(table_mod.TableError, match=r"batch = 4, this one has 8 \(another "
                        r"--batch\).*no chunk of it has finished"):
-        table_mod.open_manifest(out, {**man, "batch": 8, "n_rollouts": 10})
+        table_mod.open_manifest(out, dataclasses.replace(man, batch=8))
     assert (out / table_mod.MANIFEST).read_bytes() == first
-    assert table_mod.open_manifest(out, dict(man)) == man
+    assert table_mod.open_manifest(out, man) == man
     assert not [f.name for f in out.iterdir() if ".tmp-" in f.name]   # no temp file left
+
+
+def test_manifest_round_trips_and_refuses_a_bad_key(tmp_path):
+    """The manifest's JSON round-trips (the same record, the same text, the keys in the
+    file's order); a file with a key missing or unknown is refused naming the key and the
+    file; a folder begun before objective_weights, safe_sets, engine and lockstep reads
+    with their defaults (lockstep 1 on the mujoco engine)."""
+    from safewbc_jax.sweeps.run import _manifest
+
+    man = manifest(objective_weights={"tracking_rms.arms": 2.0}, safe_sets=("/x/y.py:S",),
+                   engine="mujoco", lockstep=8)
+    text = man.to_json()
+    assert table_mod.Manifest.from_json(text) == man
+    assert table_mod.Manifest.from_json(json.loads(text)) == man
+    assert table_mod.Manifest.from_json(text).to_json() == text
+    assert list(json.loads(text)) == [
+        "format", "fingerprint", "seed", "batch", "n_rollouts", "n_chunks", "scenario",
+        "spec_path", "axes", "barriers", "monitors", "outputs", "target", "violation_tol",
+        "repeats", "objective", "objective_weights", "safe_sets", "engine", "lockstep"]
+    assert "lockstep" not in json.loads(manifest().to_json())      # the mjx engine's
+    # a spec's manifest, written and read back by the folder
+    spec = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
+    assert spec.fingerprint() == "54a9cd7467753d3c"     # folders begun before stay valid
+    mine = _manifest(spec, 3, 16, 7, "mujoco", 8)
+    out = tmp_path / "sw"
+    assert table_mod.open_manifest(out, mine) == mine == table_mod.read_manifest(out)
+    assert (out / table_mod.MANIFEST).read_text() == mine.to_json()
+    # a missing or an unknown key, named with the file
+    path = out / table_mod.MANIFEST
+    for key in ("seed", "fingerprint"):
+        d = json.loads(text)
+        del d[key]
+        path.write_text(json.dumps(d))
+        with pytest.raises(table_mod.TableError, match=f"{path}: the manifest has no key "
+                                                       f"'{key}'"):
+            table_mod.read_manifest(out)
+        with pytest.raises(table_mod.TableError, match=f"no key '{key}'"):
+            table_mod.open_manifest(out, mine)
+    path.write_text(json.dumps({**json.loads(text), "sed": 1}))
+    with pytest.raises(table_mod.TableError, match=f"{path}: unknown manifest key 'sed'"):
+        table_mod.read_manifest(out)
+    with pytest.raises(table_mod.TableError, match="'axes' = 'x': expected a list"):
+        table_mod.Manifest.from_json({**json.loads(text), "axes": "x"}, "m.json")
+    # a folder from before the later keys
+    old = {k: v for k, v in json.loads(text).items()
+           if k not in ("objective_weights", "safe_sets", "engine", "lockstep")}
+    got = table_mod.Manifest.from_json(old)
+    assert (got.engine, got.safe_sets, got.objective_weights, got.lockstep) == ("mjx", (), {},
+                                                                                None)
+    assert table_mod.Manifest.from_json({**old, "engine": "mujoco"}).lockstep == 1
+
+
+def test_spec_tables_are_typed_and_the_pool_job_pickles(tmp_path):
+    """[push], [perturb] and [tune] are typed records with the spec's values and the
+    defaults; the pool's job (``pool.Job``) pickles, as multiprocessing's spawn and Ray
+    send it."""
+    import pickle
+
+    from safewbc_jax.sweeps.pool import Job
+    from safewbc_jax.sweeps.spec import (PUSH_DEFAULTS, PerturbTable, PushTable,
+                                         TuneTable)
+
+    s = spec_from(tmp_path, GOOD + "[push]\ndirection = 90.0\n[tune]\npopulation = 6\n")
+    assert s.push == PushTable(**{**PUSH_DEFAULTS, "direction": 90.0})
+    assert s.perturb == PerturbTable(base_linear=0.01)
+    assert isinstance(s.tune, TuneTable) and s.tune.population == 6 and s.tune.budget is None
+    assert s.tune.barrier == "left_fist" and s.tune.params == ()
+    assert s.tune.weights == {"tracking_rms.com": 1.0, "tracking_rms.torso": 1.0,
+                              "tracking_rms.arms": 1.0}
+    job = Job(s.run, 4, str(tmp_path), "mjx", "mixed")
+    assert pickle.loads(pickle.dumps(job)) == job
 
 
 def _fake_table(tmp_path):
@@ -311,11 +401,9 @@ def _fake_table(tmp_path):
             "barrier_min.left_fist": hmin, "tracking_rms.arms": 0.05 + 0.01 / p1,
             "tracking_rms.com": np.full(n, 0.002)}
     out = tmp_path / "rep"
-    man = {"fingerprint": "f", "seed": 0, "batch": 20, "n_rollouts": n, "n_chunks": 3,
-           "scenario": "arms", "axes": ["poles.left_fist.p1", "poles.left_fist.p2",
-                                        "push.magnitude", "push.direction"],
-           "barriers": ["left_fist"], "outputs": ["com", "arms"], "target": "left_fist",
-           "violation_tol": 0.0, "objective": ["tracking_rms.arms"]}
+    man = manifest(fingerprint="f", seed=0, batch=20, n_rollouts=n, n_chunks=3,
+                   axes=("poles.left_fist.p1", "poles.left_fist.p2", "push.magnitude",
+                         "push.direction"))
     table_mod.open_manifest(out, man)
     for k, (a, b) in enumerate(table_mod.plan_chunks(n, 20)):
         table_mod.write_chunk(out, k, {c: v[a:b] for c, v in cols.items()})
@@ -351,11 +439,11 @@ def test_report_objective_uses_the_spec_weights(tmp_path):
     from safewbc_jax.sweeps.report import outcome
 
     _, cols = _fake_table(tmp_path)
-    man = {"target": "left_fist", "violation_tol": 0.0, "outputs": ["com", "arms"],
-           "objective": ["tracking_rms.arms", "tracking_rms.com"]}
+    man = manifest(objective=("tracking_rms.arms", "tracking_rms.com"))
     np.testing.assert_allclose(outcome(man, cols)["objective"],
                                cols["tracking_rms.arms"] + cols["tracking_rms.com"], rtol=1e-12)
-    man["objective_weights"] = {"tracking_rms.arms": 2.0, "tracking_rms.com": -0.5}
+    man = dataclasses.replace(man, objective_weights={"tracking_rms.arms": 2.0,
+                                                      "tracking_rms.com": -0.5})
     np.testing.assert_allclose(outcome(man, cols)["objective"],
                                2.0 * cols["tracking_rms.arms"] - 0.5 * cols["tracking_rms.com"],
                                rtol=1e-12)
@@ -410,8 +498,9 @@ def test_precision_key(tmp_path):
     from safewbc_jax.sweeps.run import run_sweep
 
     base = spec_from(tmp_path, GOOD, "a.toml")
-    same = spec_from(tmp_path, GOOD.replace("[sweep]\n", "[sweep]\nprecision = \"float64\"\n"), "b.toml")
-    mixed = spec_from(tmp_path, GOOD.replace("[sweep]\n", "[sweep]\nprecision = \"mixed\"\n"), "c.toml")
+    with_key = lambda v: GOOD.replace("[sweep]\n", f"[sweep]\nprecision = \"{v}\"\n")  # noqa: E731
+    same = spec_from(tmp_path, with_key("float64"), "b.toml")
+    mixed = spec_from(tmp_path, with_key("mixed"), "c.toml")
     assert base.precision == "float64" and mixed.precision == "mixed"
     assert base.fingerprint() == same.fingerprint() != mixed.fingerprint()
     with pytest.raises(SpecError, match="sweep.precision = 'half'"):
@@ -425,8 +514,6 @@ def test_auto_batch_on_the_cpu_and_on_resume(tmp_path):
     """--batch auto: the spec's batch on a CPU (and with the mujoco engine); a sweep
     directory already begun keeps its manifest's batch. (On an accelerator it comes from
     rollout.memory_model; benchmarks/accelerator.py exercises that model on the CPU.)"""
-    import json
-
     from safewbc_jax.app.cli import _batch_arg
     from safewbc_jax.sweeps.sizing import auto_batch
     from safewbc_jax.sweeps.table import MANIFEST
@@ -435,7 +522,7 @@ def test_auto_batch_on_the_cpu_and_on_resume(tmp_path):
     assert auto_batch(spec, tmp_path / "new", "mjx", quiet=True) == spec.batch
     assert auto_batch(spec, tmp_path / "new", "mujoco", quiet=True) == spec.batch
     (tmp_path / "old").mkdir()
-    (tmp_path / "old" / MANIFEST).write_text(json.dumps({"batch": 7}))
+    (tmp_path / "old" / MANIFEST).write_text(manifest(batch=7).to_json())
     assert auto_batch(spec, tmp_path / "old", "mjx", quiet=True) == 7
     assert _batch_arg("auto") == "auto" and _batch_arg("12") == 12
     with pytest.raises(Exception, match="expected an integer >= 1"):
@@ -451,3 +538,27 @@ def test_lockstep_width_is_16_or_a_smaller_batch():
     assert [lockstep_width(b) for b in (1, 2, 15, 16, 17, 256)] == [1, 2, 15, 16, 16, 16]
     assert lockstep_width(None) == lockstep_width("auto") == 16
     assert lockstep_width(np.int64(3)) == 3
+
+
+def test_the_push_scenario_pushes_by_default_everywhere(tmp_path):
+    """A scenario's push (``Scenario.push``) is the default of every path: the push
+    scenario's sweep without a [push] table pushes 30 N to the right at 2.55 s for 0.15 s
+    (the paper's push, the one ``safewbc run push`` applies); keys the spec gives override
+    it one by one; a scenario without a push gets none."""
+    import numpy as np
+
+    from safewbc_jax import scenarios
+    from safewbc_jax.app import runner
+    from safewbc_jax.sweeps import inputs
+
+    text = '[sweep]\nscenario = "push"\nduration = 4.0\n[grid]\n"poles.swing_foot.p1" = [20.0]\n'
+    s = spec_from(tmp_path, text)
+    assert (s.push.magnitude, s.push.direction, s.push.at, s.push.duration) == \
+        (30.0, 270.0, 2.55, 0.15)
+    push, _ = inputs.pushes(s, s.settings_array())
+    np.testing.assert_allclose(push.force, [[0.0, -30.0, 0.0]], atol=1e-12)  # cos(270 deg)
+    run = runner.check_run_options("push", scenarios.get_scenario("push"))
+    assert run.push == (0.0, -30.0, 0.0) and (run.push_at, run.push_for) == (2.55, 0.15)
+    s = spec_from(tmp_path, text + "[push]\nmagnitude = 10.0\n", "t.toml")
+    assert (s.push.magnitude, s.push.direction) == (10.0, 270.0)
+    assert spec_from(tmp_path, GOOD, "u.toml").push.magnitude == 0.0     # arms: no push

@@ -121,7 +121,8 @@ def test_tune_config_defaults_and_budget(tmp_path):
     assert [a.name for a in axes] == ["mu", "push.magnitude"]
     np.testing.assert_array_equal(rows, [[0.6, 0.0], [0.6, 10.0]])
     with pytest.raises(SpecError, match=r"grid axes \['kp.arms'\]"):
-        tuning.config(spec_from(tmp_path, SPEC.replace("[grid]\n", "[grid]\n\"kp.arms\" = [50.0]\n"),
+        tuning.config(spec_from(tmp_path, SPEC.replace("[grid]\n",
+                                                       "[grid]\n\"kp.arms\" = [50.0]\n"),
                                 "k.toml"))
     # without tune.params and without an enforced barrier there is nothing to tune
     no = SPEC.split("[tune.params]")[0]
@@ -130,7 +131,8 @@ def test_tune_config_defaults_and_budget(tmp_path):
     # the list form of the objective: weight 1 each
     lst = spec_from(tmp_path, "[sweep]\nscenario = \"arms\"\n[tune]\nobjective = "
                     "[\"tracking_rms.arms\", \"foot_slip_max\"]\n", "l.toml")
-    assert lst.tune["weights"] == {"tracking_rms.arms": 1.0, "foot_slip_max": 1.0}
+    assert lst.tune.weights == {"tracking_rms.arms": 1.0, "foot_slip_max": 1.0}
+    assert lst.tune.objective == ("tracking_rms.arms", "foot_slip_max")
 
 
 def test_param_scales_map_the_unit_box():

@@ -16,7 +16,7 @@ from safewbc_jax.control.metrics import summarize
 from safewbc_jax.control.step import DEFAULT_CONTROL_DT, DEFAULT_SPEED
 from safewbc_jax.control.params import apply_overrides, load_overrides
 from safewbc_jax.ui.progress import Progress
-from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR, Push
+from safewbc_jax.control.push import PUSH_AT, PUSH_FOR, Push
 
 
 def check_video_backend(path: str) -> None:
@@ -41,7 +41,6 @@ def check_video_backend(path: str) -> None:
             "'apt-get install libosmesa6' with MUJOCO_GL=osmesa.") from None
 
 
-PAPER_PUSH = (0.0, -30.0, 0.0)   # N: the paper's lateral push (to the right)
 # Ranges of the run options (safewbc run). A run logs every control step in memory (about
 # 1 kB per step), so 600 s at 1 kHz is ~0.6 GB; a push above 1,000 N for the default
 # 0.15 s gives the 48 kg robot a velocity change above 3 m/s, far past a recoverable push.
@@ -96,8 +95,10 @@ def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=
     if walking:
         speed = (DEFAULT_SPEED if speed is None else
                  scenario.gait.check_speed(_finite("--speed", speed), "--speed"))
-    if name == "push" and push is None:
-        push = PAPER_PUSH
+    if push is None and scenario.push is not None:     # the scenario's own push
+        push = tuple(float(f) for f in scenario.push.force)
+        push_at = float(scenario.push.at) if push_at is None else push_at
+        push_for = float(scenario.push.duration) if push_for is None else push_for
     if push is None:
         if push_at is not None or push_for is not None:
             raise ValueError("--at and --for time a push: give --force FX,FY,FZ (or run the "

@@ -3,8 +3,10 @@ the persistent compilation cache, and two defaults set on import for the librari
 JAX (one OpenBLAS thread, XLA:CPU's classic fusion emitters). ``safewbc_jax`` re-exports
 every public name of this module."""
 
+from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 
 # OpenBLAS (numpy's, and scipy's, which jaxlib's CPU LAPACK kernels call) spins worker
 # threads after each call; on a small CPU they compete with XLA's own thread pool, and the
@@ -27,10 +29,17 @@ program compiled for an
 accelerator is the same."""
 
 
-def add_xla_flags(flags) -> None:
-    """Append ``flags`` ("--name=value" strings) to the environment's ``XLA_FLAGS``, each
-    unless ``XLA_FLAGS`` already names it. XLA reads them when JAX starts a backend: call
-    this before the process's first JAX array or compile."""
+def add_xla_flags(flags: Iterable[str]) -> None:
+    """Append flags to the environment's ``XLA_FLAGS``, each unless ``XLA_FLAGS`` already
+    names it.
+
+    XLA reads them when JAX starts a backend: call this before the process's first JAX
+    array or compile.
+
+    Args:
+        flags: "--name=value" strings. A flag whose name ``XLA_FLAGS`` already holds,
+            whatever its value there, is left out.
+    """
     have = os.environ.get("XLA_FLAGS", "")
     named = {f.split("=", 1)[0].lstrip("-") for f in have.split()}
     extra = [f for f in flags if f.split("=", 1)[0].lstrip("-") not in named]
@@ -43,15 +52,26 @@ add_xla_flags(CPU_XLA_FLAGS)
 
 def enable_x64() -> None:
     """Switch JAX to 64-bit floats for this process (``jax_enable_x64``), as the
-    controller needs. It is JAX's global setting: it affects other JAX code in the
-    process too, which is why importing the package does not do it."""
+    controller needs.
+
+    It is JAX's global setting: it affects other JAX code in the process too, which is
+    why importing the package does not do it.
+    """
     import jax
 
     jax.config.update("jax_enable_x64", True)
 
 
 def require_x64(what: str) -> None:
-    """RuntimeError unless JAX's 64-bit floats are on, naming ``what`` needs them."""
+    """Check that JAX's 64-bit floats are on.
+
+    Args:
+        what: what needs them, for the error message (e.g. "the controller model").
+
+    Raises:
+        RuntimeError: JAX's 64-bit floats are off; the message names ``what`` and how to
+            turn them on (``enable_x64``).
+    """
     import jax
 
     if not jax.config.jax_enable_x64:  # type: ignore[attr-defined]
@@ -61,11 +81,17 @@ def require_x64(what: str) -> None:
 
 def use_cpu() -> None:
     """Run this process's JAX on the CPU (``jax_platforms = "cpu"``), whatever accelerator
-    and JAX plugin the machine has: the single robot's step (``safewbc run``, a deployed
-    controller) and the mujoco engine's sweep workers are CPU programs, and a CUDA backend
-    would also take most of a GPU's memory in each of those processes. JAX reads it when it
-    starts a backend: call this before the process's first JAX array or compile. A process
-    whose backend is already up on another platform raises RuntimeError."""
+    and JAX plugin the machine has.
+
+    The single robot's step (``safewbc run``, a deployed controller) and the mujoco
+    engine's sweep workers are CPU programs, and a CUDA backend would also take most of a
+    GPU's memory in each of those processes. JAX reads the setting when it starts a
+    backend: call this before the process's first JAX array or compile. Where the backend
+    is already up on the CPU, it does nothing.
+
+    Raises:
+        RuntimeError: JAX already runs on another platform in this process.
+    """
     import jax
     from jax._src import xla_bridge
 
@@ -79,11 +105,17 @@ def use_cpu() -> None:
 
 
 def use_compile_cache(directory: str) -> None:
-    """Keep this process's compiled XLA programs in ``directory`` (JAX's persistent
-    compilation cache) and load them from there in later processes: every program, the
-    small eager ones too (``jax_persistent_cache_min_compile_time_secs`` = 0): a few hundred
-    of them when a controller starts, cheaper loaded than compiled again
-    (benchmarks/README.md, "A warm start: the compilation cache")."""
+    """Keep this process's compiled XLA programs in JAX's persistent compilation cache and
+    load them from there in later processes.
+
+    Every program is kept, the small eager ones too
+    (``jax_persistent_cache_min_compile_time_secs`` = 0): a few hundred of them when a
+    controller starts, cheaper loaded than compiled again (benchmarks/README.md, "A warm
+    start: the compilation cache").
+
+    Args:
+        directory: the cache's directory (``jax_compilation_cache_dir``).
+    """
     import jax
 
     jax.config.update("jax_compilation_cache_dir", directory)

@@ -21,6 +21,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from safewbc_jax.control import gait as gait_mod
+
 TRACKING_SKIP_S = 0.5   # tracking RMS counts from this long after the motion starts
 LATENCY_SKIP = 20       # first control steps (compilation, caches) left out of latency
 NO_HALF = -1.0          # t_half of a run whose forward speed is not measured
@@ -181,11 +183,24 @@ def _finite_or_nan(a, empty):
     return np.where(a == empty, np.nan, a)
 
 
-def finalize(acc: ControlAcc, plant: PlantAcc | None, fell, gait=None) -> dict:
+def finalize(scenario, acc: ControlAcc, plant: PlantAcc | None, fell, gait_state=()) -> dict:
     """Flat metric columns (numpy; a leading batch axis stays): names as in
     ``metrics.json`` with nested names joined by "." (``tracking_rms.com``,
-    ``tracking_rms_components.com[0]``, ``barrier_min.left_fist``). ``gait``: the final
-    ``walking.GaitState`` of a walking run (steps taken, touchdowns missed)."""
+    ``tracking_rms_components.com[0]``, ``barrier_min.left_fist``).
+
+    Args:
+        scenario: the run's ``Scenario``: an output's ``extremes`` components give the
+            columns ``{label}_max_reached`` and ``{label}_ref_max`` (maxima over the motion
+            of y and of y^d); its gait, if any, its own columns (``control.gait``) and the
+            stepping columns (forward speed, leg contacts, swing clearance).
+        acc: the controller's accumulators.
+        plant: the simulator's, or None (a real robot).
+        fell: whether the robot fell.
+        gait_state: the gait's state at the end of the run (() without a gait).
+
+    Returns:
+        {column name: value}.
+    """
     a = lambda x: np.asarray(x)  # noqa: E731
     out = {"fell": a(fell), "control_steps": a(acc.steps), "bad_measurements": a(acc.bad),
            "qp_solved": a(acc.n_none), "qp_failed": a(acc.n_failed),
@@ -204,16 +219,18 @@ def finalize(acc: ControlAcc, plant: PlantAcc | None, fell, gait=None) -> dict:
                 n[..., i] > 0, np.sqrt(sq[..., i] / np.maximum(n[..., i], 1)), np.nan)
     for name, h in acc.h_min.items():
         out[f"barrier_min.{name}"] = _finite_or_nan(h, np.inf)
-    if "torso" in acc.y_max:
-        out["torso_pitch_max_reached"] = _finite_or_nan(a(acc.y_max["torso"])[..., 1], -np.inf)
-        out["torso_pitch_ref_max"] = _finite_or_nan(a(acc.yd_max["torso"])[..., 1], -np.inf)
-    if gait is not None:
+    for o in scenario.outputs:
+        for i in getattr(o, "extremes", ()):
+            label = o.labels[i]
+            out[f"{label}_max_reached"] = _finite_or_nan(a(acc.y_max[o.name])[..., i], -np.inf)
+            out[f"{label}_ref_max"] = _finite_or_nan(a(acc.yd_max[o.name])[..., i], -np.inf)
+    gait_columns = gait_mod.columns(scenario.gait, gait_state)
+    if gait_columns is not None:
         span = a(acc.t_end) - a(acc.t_half_seen)
         ok = ~a(fell) & np.isfinite(span) & (span > 0)
         out["avg_forward_speed"] = np.where(
             ok, (a(acc.com_x_end) - a(acc.com_x_half)) / np.where(ok, span, 1.0), np.nan)
-        out["steps_taken"] = a(gait.steps)
-        out["missed_touchdowns"] = a(gait.missed)
+        out.update({k: a(v) for k, v in gait_columns.items()})
         if plant is not None:
             out["leg_collisions"] = a(plant.leg_collisions)
             out["leg_contact_steps"] = a(plant.leg_contact_steps)
@@ -222,15 +239,17 @@ def finalize(acc: ControlAcc, plant: PlantAcc | None, fell, gait=None) -> dict:
 
 
 # the metric columns of a sweep's table: ``finalize``'s, less the per-component tracking
-# and the torso pitch extremes (a single run's metrics.json has them), plus fell_time_s
-SINGLE_RUN_ONLY = ("tracking_rms_components.", "torso_pitch_")
+# and the outputs' extremes (a single run's metrics.json has them), plus fell_time_s
+SINGLE_RUN_ONLY = ("tracking_rms_components.",)
+EXTREMES = ("_max_reached", "_ref_max")
 
 
 def table_columns(flat: dict, fell_step, control_dt: float) -> dict:
     """``finalize``'s columns as a sweep table has them (``SINGLE_RUN_ONLY`` left out),
     with ``fell_time_s``: the time of the control step the robot fell at (``fell_step``,
     -1 where it did not: NaN), for every engine of ``safewbc sweep``."""
-    out = {k: np.asarray(v) for k, v in flat.items() if not k.startswith(SINGLE_RUN_ONLY)}
+    out = {k: np.asarray(v) for k, v in flat.items()
+           if not (k.startswith(SINGLE_RUN_ONLY) or k.endswith(EXTREMES))}
     fs = np.asarray(fell_step)
     out["fell_time_s"] = np.where(fs >= 0, fs * float(control_dt), np.nan)
     return out
@@ -304,5 +323,5 @@ def summarize(flat: dict, info: dict, scenario_name: str, control_dt: float,
     for k in ("zmp_margin_min", "foot_slip_max", "torque_ratio_max", "loop_residual_max"):
         out[k] = m.pop(k)
     out["compile_s"] = float(info.get("compile_s", np.nan))
-    out.update(m)   # walking, torso pitch
+    out.update(m)   # the outputs' extremes, the gait's columns
     return out

@@ -28,6 +28,30 @@ SCALARS = ("gamma_qdd", "gamma_u", "gamma_lambda", "mu", "gamma_torsion", "f_min
          data_fields=["kp", "kd", "weight", "poles", "threshold", *SCALARS], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class ControllerParams:
+    """Every gain of a scenario's controller, float64 JAX arrays (a leading batch axis on
+    every leaf in the batched path); build one with ``make_params`` or a scenario's
+    ``default_params``.
+
+    Args:
+        kp: output name -> (dim,) K_p.
+        kd: output name -> (dim,) K_d.
+        weight: output name -> (dim,) cost weight W.
+        poles: barrier name -> (r,) poles p_1..p_r > 0.
+        threshold: barrier name -> () threshold of its safe set.
+        gamma_qdd: Gamma's diagonal on the q_ddot block.
+        gamma_u: Gamma's diagonal on the torques u.
+        gamma_lambda: Gamma's diagonal on the contact forces lambda.
+        mu: friction coefficient of the friction pyramid.
+        gamma_torsion: the torsional limit's coefficient, |m_z| <= gamma f_z (eq. 7).
+        f_min: least normal force of a contact, N.
+        zmp_margin: how far inside the soles the centre of pressure and the ZMP are
+            held, m.
+        kd_constraint: kd of the holonomic rows J q_ddot = -J_dot v - kd J v (0: eqs.
+            2-3 as written).
+        gamma_tangential: added to Gamma's diagonal on the tangential contact forces and
+            torsion moments (f_x, f_y, m_z).
+    """
+
     kp: dict            # output name -> (dim,)
     kd: dict            # output name -> (dim,)
     weight: dict        # output name -> (dim,)
@@ -43,24 +67,57 @@ class ControllerParams:
     kd_constraint: jax.Array
     gamma_tangential: jax.Array
 
-    def replace(self, **kw) -> "ControllerParams":
-        """A copy with the fields in ``kw`` replaced, their values as float64 arrays
-        (``as_float64``)."""
+    def replace(self, **kw: Any) -> ControllerParams:
+        """A copy with some fields replaced.
+
+        Args:
+            **kw: field name -> new value (a number, an array, or for the tables a dict
+                of them), made float64 arrays (``as_float64``).
+
+        Returns:
+            The new ControllerParams.
+
+        Raises:
+            TypeError: a name that is not a field.
+        """
         return dataclasses.replace(self, **as_float64(kw))
 
 
-def as_float64(tree):
-    """Every leaf of ``tree`` as a float64 JAX array that is not weakly typed. A Python
-    float through ``jnp.asarray`` is weakly typed, and a weak leaf makes another program
-    for every jitted function that takes the params as a pytree: a controller started with
-    such params compiled its start-up QP again where the same params as float64 load it
-    from the cache (benchmarks/README.md, "Figures behind design choices")."""
+def as_float64(tree: Any) -> Any:
+    """Every leaf of a pytree as a float64 JAX array that is not weakly typed.
+
+    A Python float through ``jnp.asarray`` is weakly typed, and a weak leaf makes another
+    program for every jitted function that takes the params as a pytree: a controller
+    started with such params compiles its start-up QP again where the same params as
+    float64 load it from the cache.
+
+    Args:
+        tree: a pytree of numbers or arrays.
+
+    Returns:
+        The same pytree of float64 JAX arrays.
+    """
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), tree)
 
 
-def make_params(outputs: dict, barriers: dict, **scalars) -> ControllerParams:
-    """outputs: name -> (dim, kp, kd, weight) with scalar or per-dim gains; barriers:
-    name -> (poles, threshold). Float64: needs ``safewbc_jax.enable_x64()``."""
+def make_params(outputs: dict[str, tuple], barriers: dict[str, tuple],
+                **scalars: float) -> ControllerParams:
+    """Build the params of a controller's outputs and barriers, float64.
+
+    Args:
+        outputs: output name -> (dim, kp, kd, weight), each gain a scalar or dim values
+            (``Task.params_entry``).
+        barriers: barrier name -> (poles, threshold).
+        **scalars: values of the scalar fields (``SCALARS``: gamma_qdd, mu, f_min, ...)
+            over the defaults.
+
+    Returns:
+        The ControllerParams.
+
+    Raises:
+        RuntimeError: JAX's 64-bit floats are off (``safewbc_jax.enable_x64``).
+        ValueError: a name in ``scalars`` that is not a scalar field.
+    """
     from safewbc_jax.base.runtime import require_x64
 
     require_x64("ControllerParams (params.make_params)")
@@ -102,15 +159,28 @@ def _vector(src: str, table: str, name: str, value, dim: int) -> np.ndarray:
     return np.broadcast_to(arr, (dim,)).copy()
 
 
-def apply_overrides(params: ControllerParams, overrides: dict,
+def apply_overrides(params: ControllerParams, overrides: dict[str, Any],
                     src: str = "params") -> ControllerParams:
-    """Apply a nested dict of overrides (as read from TOML):
+    """Apply a nested dict of overrides, as read from TOML (``load_overrides``):
 
         [kp] com = 120            [kd] torso = [20, 20, 10]      [weight] arms = 5
         [poles] left_fist = [8, 12]          [threshold] left_fist = 0.05
         mu = 0.5   gamma_qdd = 1e-4   ...
 
-    Every key and value is checked; errors name the source, key and value."""
+    Args:
+        params: the params to start from.
+        overrides: table name ("kp", "kd", "weight", "poles", "threshold") -> {name:
+            a number or a list of numbers}, or a scalar field's name -> a number.
+        src: where the overrides come from (a file's path), for the error messages.
+
+    Returns:
+        ``params`` with the overrides applied.
+
+    Raises:
+        ParamsError: an unknown key, output or barrier, or a bad value (not a finite
+            number or a list of the right length, a gain or pole not > 0, a negative
+            weight); the message names the source, key and value.
+    """
     kw: dict[str, Any] = {}
     for key, value in overrides.items():
         if key in ("kp", "kd", "weight"):
@@ -154,8 +224,18 @@ def apply_overrides(params: ControllerParams, overrides: dict,
     return params.replace(**kw)
 
 
-def load_overrides(path: str | Path) -> dict:
-    """Read a params TOML file."""
+def load_overrides(path: str | Path) -> dict[str, Any]:
+    """Read a params TOML file.
+
+    Args:
+        path: the file.
+
+    Returns:
+        Its tables, for ``apply_overrides``.
+
+    Raises:
+        ParamsError: the file does not exist or is not valid TOML.
+    """
     import tomllib
 
     p = Path(path)
@@ -168,7 +248,14 @@ def load_overrides(path: str | Path) -> dict:
 
 
 def to_toml(params: ControllerParams) -> str:
-    """Write every parameter as TOML that ``load_overrides`` reads back."""
+    """Every parameter as TOML that ``load_overrides`` reads back.
+
+    Args:
+        params: params without a batch axis.
+
+    Returns:
+        The TOML text.
+    """
     lines = []
     for key in SCALARS:
         lines.append(f"{key} = {float(getattr(params, key))!r}")

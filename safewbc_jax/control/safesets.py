@@ -34,11 +34,16 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
-from typing import Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from safewbc_jax.base import userfile
+
+if TYPE_CHECKING:
+    import jax
+
+    from safewbc_jax.model.robot import RobotModel
 
 _NAME_RE = userfile.NAME_RE
 
@@ -50,6 +55,34 @@ class SafeSetError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class SafeSet:
+    """One barrier h and what a scenario needs of it (the module docstring says more).
+
+    Args:
+        name: an identifier, the barrier's key in ``ControllerParams``' poles and
+            threshold tables.
+        h: ``h(model, q, threshold, domain)`` (relative degree 2) or ``h(model, q, v,
+            threshold, domain)`` (relative degree 1), returning one number: the set is
+            h >= 0.
+        relative_degree: 1 or 2.
+        poles: the default poles p_1..p_r > 0, one per derivative (r =
+            ``relative_degree``).
+        threshold: the default threshold passed to ``h``.
+        active: ``active(domain) -> 0/1``, where the row is enforced; None: always.
+        check_domain: ``check_domain(model, q) -> domain``, where Theorem 1 is checked for
+            a barrier not active at the start state; None: at the start state.
+        enforce: False: h is evaluated for the metrics and plots only (a monitor).
+        unit: the unit of h, for the summaries ("m", "rad", "m/s", ...).
+        terms: relative degree 2 only: ``terms(model, kin, motion, threshold, domain) ->
+            (h, J_h, J_h_dot v)`` in closed form, used for the QP row instead of the AD
+            of h; None: the AD.
+
+    Raises:
+        SafeSetError: a name that is not an identifier, an ``h`` or ``terms`` that is not
+            a function or has the wrong signature, a relative degree other than 1 or 2,
+            poles that are not ``relative_degree`` finite numbers > 0, a threshold that is
+            not a finite number.
+    """
+
     name: str
     h: Callable
     relative_degree: int = 2
@@ -99,20 +132,54 @@ class SafeSet:
         object.__setattr__(self, "poles", tuple(float(p) for p in poles))
         object.__setattr__(self, "threshold", float(self.threshold))
 
-    def h_fn(self, model, threshold, domain=None):
-        """The barrier as ``barriers`` takes it: h_fn(q) (degree 2) or h_fn(q, v) (degree 1)."""
+    def h_fn(self, model: RobotModel, threshold: Any,
+             domain: Any = None) -> Callable[..., jax.Array]:
+        """The barrier as a function of the state alone (as ``barriers`` takes it).
+
+        Args:
+            model: the robot model.
+            threshold: the threshold passed to ``h``.
+            domain: the gait's domain in walking, else None.
+
+        Returns:
+            ``h_fn(q)`` (relative degree 2) or ``h_fn(q, v)`` (relative degree 1).
+        """
         if self.relative_degree == 2:
             return lambda q: self.h(model, q, threshold, domain)
         return lambda q, v: self.h(model, q, v, threshold, domain)
 
-    def value(self, model, q, v, threshold, domain=None):
-        """h at (q, v)."""
+    def value(self, model: RobotModel, q: jax.Array, v: jax.Array, threshold: Any,
+              domain: Any = None) -> jax.Array:
+        """h at (q, v).
+
+        Args:
+            model: the robot model.
+            q: (nq,) configuration.
+            v: (nv,) generalized velocity (not used at relative degree 2).
+            threshold: the threshold passed to ``h``.
+            domain: the gait's domain in walking, else None.
+
+        Returns:
+            h, a scalar.
+        """
         hf = self.h_fn(model, threshold, domain)
         return hf(q) if self.relative_degree == 2 else hf(q, v)
 
-    def check(self, model, q, v, domain=None) -> None:
-        """SafeSetError unless h evaluates to one number at (q, v) (by ``jax.eval_shape``:
-        nothing runs or compiles): what the loops call before compiling the step."""
+    def check(self, model: RobotModel, q: jax.Array, v: jax.Array,
+              domain: Any = None) -> None:
+        """Check that h evaluates to one number at (q, v), at the default threshold, by
+        ``jax.eval_shape`` (nothing runs or compiles).
+
+        Args:
+            model: the robot model.
+            q: (nq,) configuration.
+            v: (nv,) generalized velocity.
+            domain: the gait's domain in walking, else None.
+
+        Raises:
+            SafeSetError: evaluating h fails, or h does not return shape (); the message
+                names the safe set.
+        """
         import jax
 
         try:
@@ -125,16 +192,39 @@ class SafeSet:
             raise SafeSetError(f"safe set {self.name!r}: h must return one number (shape ()), "
                                f"it returns shape {getattr(out, 'shape', type(out).__name__)}")
 
-    def is_active(self, domain):
+    def is_active(self, domain: Any) -> Any:
+        """Whether the row is enforced in a domain.
+
+        Args:
+            domain: the gait's domain in walking, else None.
+
+        Returns:
+            1.0 where ``active`` is None, else ``active(domain)`` (0 or 1).
+        """
         return 1.0 if self.active is None else self.active(domain)
 
-    def monitored(self) -> "SafeSet":
-        """This safe set evaluated only (no QP row)."""
+    def monitored(self) -> SafeSet:
+        """This safe set evaluated only (no QP row).
+
+        Returns:
+            A copy with ``enforce`` False.
+        """
         return dataclasses.replace(self, enforce=False)
 
 
 def load(ref: str) -> SafeSet:
-    """The SafeSet ``NAME`` of the Python file ``FILE.py`` (``ref`` = "FILE.py:NAME";
-    ``userfile.load``); ``NAME`` may also be a function of no arguments returning one.
-    Raises SafeSetError naming the file and what is missing."""
+    """A user's safe set from a Python file (``userfile.load``).
+
+    Args:
+        ref: "FILE.py:NAME": the file, imported, and the name in it of a SafeSet or of a
+            function of no arguments that returns one.
+
+    Returns:
+        The SafeSet.
+
+    Raises:
+        SafeSetError: a malformed ``ref``, a missing file or name, a file whose import
+            fails, or a name that is not a SafeSet; the message names the file and what
+            is wrong.
+    """
     return userfile.load(ref, SafeSet, "safe set", SafeSetError)

@@ -5,8 +5,10 @@
 Its default ``ControllerParams`` come from the tasks (K_p, K_d, W) and the safe sets (poles,
 threshold); nothing else has to be edited to add a task or a safe set
 (``with_safe_sets`` adds them to an existing scenario). A domain-driven scenario
-(walking) also has a ``gait``: the object that advances its domains from the measurement
-(``walking.AlipGait``); the double-support scenarios have none.
+(walking) also has a ``gait`` (the protocol of ``control.gait``) that advances its domains
+from the measurement; the double-support scenarios have none. A scenario may carry a
+``push`` (``control.push.Push``): every simulator loop applies it (``safewbc run``,
+``run_batch``, the sweeps' default ``[push]``) unless the run gives its own.
 
 Before the motion (tau < 0) the robot stands for ``settle`` seconds while every
 time-based reference is blended from the measured start value to y^d(0) in ``blend``
@@ -26,6 +28,7 @@ import numpy as np
 
 from safewbc_jax.control import references
 from safewbc_jax.control.params import ControllerParams, make_params
+from safewbc_jax.control.push import Push
 from safewbc_jax.control.safesets import SafeSet, SafeSetError
 from safewbc_jax.control.tasks import Task
 from safewbc_jax.model import digit
@@ -61,9 +64,15 @@ class Scenario:
     in_contact: tuple = (1.0, 1.0)
     gait: Any | None = None
     scalars: tuple = ()       # (name, value) overrides of ControllerParams' scalars
+    push: Any | None = None   # the push (control.push.Push) of every simulated run, unless
+                              # the run sets its own; None: no push
 
     def __post_init__(self):
         object.__setattr__(self, "tasks", tuple(self.tasks))
+        if self.push is not None:   # plain floats: a scenario is hashed (a static argument)
+            f, at, dur = self.push
+            object.__setattr__(self, "push", Push(tuple(float(x) for x in np.ravel(f)),
+                                                  float(at), float(dur)))
         object.__setattr__(self, "safe_sets", tuple(self.safe_sets))
         for t in self.tasks:
             if not isinstance(t, Task):

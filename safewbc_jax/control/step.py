@@ -17,10 +17,9 @@ Nothing in either loop decides anything about control:
 * the measurement check (``state_ok``): a refused measurement holds the last good torque,
   does not advance the gait or the clock, and is counted (``bad_measurements``);
 * the clock: tau = (t - t_first) - settle, from the first good measurement;
-* walking: the gait (``scenario.gait``, ``walking.AlipGait``) advanced over the control
-  periods since the last good step, from the soles' normal forces of the measurement and the
-  soles' positions by the controller's forward kinematics of q; the domain; the swing leg's
-  rates with rigid springs (``walking.rigid_spring_velocity``);
+* a domain-driven scenario: its gait (``scenario.gait``, the protocol of ``control.gait``)
+  advanced over the control periods since the last good step, from the measurement (q and
+  the soles' normal forces); the domain; the rates the gait's controller sees;
 * the QP (``controller.robot_terms``, ``controller.build_qp``);
 * the torque: the solution's u, or the last good u where the QP failed (``hold_torque``);
   the motor torques in the robot's motor order (``MotorArrays.to_motor``);
@@ -39,7 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax.control import barriers, terms as controller, metrics, walking
+from safewbc_jax.control import barriers, terms as controller, metrics
+from safewbc_jax.control import gait as gait_mod
 from safewbc_jax.model import contacts, robot
 from safewbc_jax.control import scenario as scenario_mod
 from safewbc_jax.solvers.problem import Blocks
@@ -213,10 +213,11 @@ def _start_data(model, scenario, q) -> scenario_mod.Start:
 
 
 class ControllerState(NamedTuple):
-    """What ``prepare`` carries from one step to the next: the gait; the last accepted
-    state, time and tau; the clock's origin (NaN before the first good measurement)."""
+    """What ``prepare`` carries from one step to the next: the gait's state (its own
+    pytree, ``control.gait``; () without a gait); the last accepted state, time and tau;
+    the clock's origin (NaN before the first good measurement)."""
 
-    gait: walking.GaitState
+    gait: Any
     last_q: jax.Array
     last_v: jax.Array
     t0: jax.Array
@@ -236,7 +237,7 @@ class Tally(NamedTuple):
 def init_state(ctx: Context, q, v, xp=jnp, dtype=jnp.float64) -> tuple[ControllerState, Tally]:
     """(ControllerState, Tally) before the first step, at the start state (q, v)."""
     nan = xp.asarray(np.nan, dtype)
-    return (ControllerState(walking.GaitState.standing(xp, dtype), xp.asarray(q, dtype),
+    return (ControllerState(gait_mod.initial(ctx.scenario.gait, xp, dtype), xp.asarray(q, dtype),
                             xp.asarray(v, dtype), nan, nan, nan),
             Tally(xp.zeros(ctx.model.nu, dtype), metrics.control_init(ctx.scenario, xp, dtype)))
 
@@ -252,8 +253,8 @@ class Prepared(NamedTuple):
     v: jax.Array
     t_rel: jax.Array
     tau: jax.Array
-    gait: walking.GaitState
-    domain: walking.Domain | None
+    gait: Any               # the gait's state (() without a gait)
+    domain: Any             # the gait's domain, or None
     aux: controller.QPAux
 
 
@@ -306,10 +307,10 @@ class Output(NamedTuple):
 class StepRecord(NamedTuple):
     """One step, for logs and trajectories: the measurement accepted; tau; the solver's
     status, fallback and iterations; u; lambda (NaN where the QP failed); the ZMP margin
-    over the domain's support polygon (NaN where the QP failed); stance side (0 outside
-    walking); the stance sole's position when its step began; touchdowns missed; each
-    output's value and reference (a component not tracked in this domain: reference NaN);
-    each barrier's value h."""
+    over the domain's support polygon (NaN where the QP failed); the stance side (0: both
+    feet) and the stance sole's position when its step began (``gait.Support``); the
+    gait's own fields ({} without a gait); each output's value and reference (a component
+    not tracked in this domain: reference NaN); each barrier's value h."""
 
     ok: jax.Array
     tau: jax.Array
@@ -322,7 +323,7 @@ class StepRecord(NamedTuple):
     zmp_margin: jax.Array
     stance: jax.Array
     stance0: jax.Array
-    missed: jax.Array
+    gait: dict
     y: dict
     yd: dict
     h: dict
@@ -348,13 +349,13 @@ def conclude(ctx: Context, run: RunValues, tally: Tally, prep: Prepared, sol: So
     y = {n: ya for n, (ya, _) in prep.aux.outputs.items()}
     yd = {n: jnp.where(mask[n] > 0, yd_, jnp.nan) if n in mask else yd_
           for n, (_, yd_) in prep.aux.outputs.items()}
-    zero = jnp.zeros((), prep.q.dtype)
+    support = gait_mod.support(sc.gait, prep.gait, jnp, prep.q.dtype)
     rec = StepRecord(ok=prep.ok, tau=prep.tau, status=jnp.asarray(sol.status, jnp.int32),
                      fallback=jnp.asarray(sol.fallback, jnp.int32),
                      iterations=jnp.asarray(sol.iterations, jnp.int32),
                      eq_residual=jnp.where(usable, sol.eq_residual, jnp.nan), u=u, lam=lam,
-                     zmp_margin=margin, stance=prep.gait.stance if ctx.walking else zero,
-                     stance0=prep.gait.stance0, missed=prep.gait.missed, y=y, yd=yd,
+                     zmp_margin=margin, stance=support.stance, stance0=support.stance0,
+                     gait={} if sc.gait is None else sc.gait.record(prep.gait), y=y, yd=yd,
                      h=dict(prep.aux.barrier_h))
     acc = metrics.control_accumulate(tally.acc, rec, prep.t_rel, run.t_half,
                                      jnp.asarray(model.torque_limit), xp=jnp)

@@ -32,6 +32,25 @@ from safewbc_jax.control.outputs import Output
 
 @dataclasses.dataclass(frozen=True)
 class Task:
+    """One output tracked with its gains, weight and reference (the module docstring
+    describes the two kinds of reference).
+
+    Args:
+        output: the output y^a(q) (an ``outputs.Output``); its name is the task's.
+        kp: default K_p, a scalar or one value per component.
+        kd: default K_d, a scalar or one value per component.
+        weight: default cost weight W, a scalar or one value per component.
+        reference: ``reference(tau, start) -> y^d(tau)``, a smooth function of the motion
+            time; exactly one of it and ``planned``.
+        planned: ``planned(model, tau, start, q, v, domain) -> (y^d, y^d_dot,
+            y^d_ddot)``, planned from the measured state at each control step.
+        mask: ``mask(domain) -> (dim,)`` 0/1 per component; None tracks every component
+            always.
+
+    Raises:
+        ValueError: both or neither of ``reference`` and ``planned`` are given.
+    """
+
     output: Output
     kp: float | tuple = 100.0
     kd: float | tuple = 20.0
@@ -47,12 +66,18 @@ class Task:
 
     @property
     def name(self) -> str:
+        """The output's name."""
         return self.output.name
 
     @property
     def dim(self) -> int:
+        """The output's dimension."""
         return self.output.dim
 
-    def params_entry(self):
-        """(dim, K_p, K_d, W) as ``params.make_params`` takes them."""
+    def params_entry(self) -> tuple[int, float | tuple, float | tuple, float | tuple]:
+        """The task's entry of ``params.make_params``' ``outputs``.
+
+        Returns:
+            ``(dim, K_p, K_d, W)``.
+        """
         return self.dim, self.kp, self.kd, self.weight

@@ -51,6 +51,7 @@ import numpy as np
 from safewbc_jax.control import alip, outputs, references
 from safewbc_jax.model import chains, robot
 from safewbc_jax.control.safesets import SafeSet
+from safewbc_jax.control.gait import Support
 from safewbc_jax.control.scenario import Scenario
 from safewbc_jax.control.tasks import Task
 from safewbc_jax.solvers import lapack_batched as lb
@@ -330,10 +331,10 @@ def walk_tasks():
                  mask=_swing_mask))
 
 
-def make_scenario(name, duration):
-    """The walking scenario (``push`` is the same with the paper's push, ``runner``)."""
+def make_scenario(name, duration, push=None):
+    """A walking scenario of ``duration`` s, with ``push`` (a ``Push``, or None)."""
     return Scenario(name, walk_tasks(), (swing_barrier(),), duration=duration, settle=1.5,
-                    blend=1.0, gait=AlipGait())
+                    blend=1.0, gait=AlipGait(), push=push)
 
 
 # --------------------------------------------------------------------------------------
@@ -484,8 +485,8 @@ class Gait:
 
 @dataclasses.dataclass(frozen=True)
 class AlipGait:
-    """The walking scenarios' gait (``scenario.Scenario.gait``): what
-    ``control_step.prepare`` asks of a domain-driven scenario, in JAX."""
+    """The walking scenarios' gait (``scenario.Scenario.gait``), of the protocol
+    ``control.gait.Gait``: its state is a ``GaitState``, its domain a ``Domain``."""
 
     step_width: float = STEP_WIDTH
 
@@ -522,3 +523,20 @@ class AlipGait:
 
     def check_speed(self, speed, option="speed"):
         return check_speed(speed, option)
+
+    def initial(self, xp, dtype) -> GaitState:
+        return GaitState.standing(xp, dtype)
+
+    def support(self, state: GaitState) -> Support:
+        return Support(state.stance, state.stance0)
+
+    def record(self, state: GaitState) -> dict:
+        return {"missed_touchdowns": state.missed}
+
+    def columns(self, state: GaitState) -> dict:
+        return {"steps_taken": np.asarray(state.steps),
+                "missed_touchdowns": np.asarray(state.missed)}
+
+    def diagnostics(self, model, q, v, domain):
+        """The ALIP quantities of a step for the logs (``diagnostics``, ``DIAG_NAMES``)."""
+        return diagnostics(model, q, v, domain)

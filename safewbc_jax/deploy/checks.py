@@ -59,7 +59,8 @@ def check_barrier_poles(model, scenario, params, q, v, cache: dict | None = None
         scenario: the ``Scenario`` whose barriers are checked (a walking barrier is
             checked where its domain first starts).
         params: ``ControllerParams`` of one robot.
-        q, v: the start state.
+        q: the start configuration.
+        v: the start velocity.
         cache: keeps the jitted check of each start q across calls; without it the check
             runs eagerly.
 

@@ -115,7 +115,9 @@ class CompiledStep:
         ctx: what the step is compiled for (model, scenario, control period, motors).
         fixed: a template of (ControllerParams, scenario.Start, RunValues), the step's
             per-run values; only shapes and dtypes are read.
-        q, v: a start state; the QP traced there gives the elimination's static data.
+        q: a start configuration; the QP traced at (q, v) gives the elimination's static
+            data.
+        v: a start velocity.
 
     Attributes:
         prepare: jitted ``prepare(fixed, state, meas) -> (state, prepared, packed QP)``.

@@ -141,7 +141,8 @@ class Controller:
         and warm up the step; leaves the controller as ``reset`` does.
 
         Args:
-            q, v: the robot's state now (the controller model's coordinates).
+            q: the robot's configuration now (the controller model's coordinates).
+            v: its velocity.
             warm_up: False: no warm-up, the step compiles at its first call.
 
         Returns:
@@ -172,7 +173,8 @@ class Controller:
         references' start data at q, then ``reset``.
 
         Args:
-            q, v: the new start state.
+            q: the new start configuration.
+            v: the new start velocity.
             params: ``ControllerParams`` of the same shapes; None: keep the current ones.
 
         Raises:
@@ -303,7 +305,7 @@ class Controller:
 
     def metrics(self) -> dict:
         """The controller-side metric columns so far (``metrics.finalize``)."""
-        return metrics.finalize(self.tally.acc, None, False, self.gait)
+        return metrics.finalize(self.scenario, self.tally.acc, None, False, self.state.gait)
 
     def step(self, meas: Measurement) -> Command:
         """One control step (module docstring). Never raises on the measurement's content.

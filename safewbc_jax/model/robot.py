@@ -25,14 +25,18 @@ follow from them.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from functools import partial
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from safewbc_jax.model import spatial
+
+if TYPE_CHECKING:
+    from jax.typing import ArrayLike, DTypeLike
 
 FREE, HINGE, FIXED = 0, 1, 2
 
@@ -95,27 +99,70 @@ class RobotModel:
     nu: int
 
     def body_id(self, name: str) -> int:
+        """The index of a body (world body excluded).
+
+        Args:
+            name: the body's name in the MJCF model.
+
+        Returns:
+            Its row in the per-body arrays.
+
+        Raises:
+            ValueError: no body has that name.
+        """
         return self.body_names.index(name)
 
     def site_id(self, name: str) -> int:
+        """The index of a site.
+
+        Args:
+            name: the site's name in the MJCF model (e.g. ``left-sole``).
+
+        Returns:
+            Its row in the per-site arrays.
+
+        Raises:
+            KeyError: no site has that name; the message lists the sites.
+        """
         if name not in self.site_names:
             raise KeyError(f"unknown frame {name!r}; sites are {self.site_names}")
         return self.site_names.index(name)
 
     def joint_qadr(self, name: str) -> int:
-        """qpos index of a hinge by joint name."""
+        """The qpos index of a hinge.
+
+        Args:
+            name: the joint's name in the MJCF model.
+
+        Returns:
+            Its index in q.
+
+        Raises:
+            KeyError: no joint has that name.
+        """
         if name not in self.joint_names:
             raise KeyError(f"unknown joint {name!r}")
         return self.body_qadr[self.joint_names.index(name)]
 
     def joint_dadr(self, name: str) -> int:
-        """qvel index of a hinge by joint name."""
+        """The qvel index of a hinge.
+
+        Args:
+            name: the joint's name in the MJCF model.
+
+        Returns:
+            Its index in v (and in q_ddot, and a column of the Jacobians).
+
+        Raises:
+            KeyError: no joint has that name.
+        """
         if name not in self.joint_names:
             raise KeyError(f"unknown joint {name!r}")
         return self.body_dadr[self.joint_names.index(name)]
 
     @property
-    def total_mass(self):
+    def total_mass(self) -> jax.Array:
+        """The sum of the bodies' masses, kg."""
         return jnp.sum(self.body_mass)
 
 
@@ -130,12 +177,30 @@ def _mat(quat) -> np.ndarray:
 SPRING_SUFFIXES = ("-shin", "-heel-spring")
 
 
-def from_mujoco(m, dtype=jnp.float64, spring_suffixes=SPRING_SUFFIXES) -> RobotModel:
+def from_mujoco(m: Any, dtype: DTypeLike = jnp.float64,
+                spring_suffixes: Sequence[str] = SPRING_SUFFIXES) -> RobotModel:
     """Build the JAX model from a compiled MuJoCo model of a floating-base hinge tree.
 
-    Rods are found as site pairs ``<rod>-anchor`` / ``<rod>-ball``; spring joints by the
-    name suffixes ``spring_suffixes``. A float64 model needs JAX's 64-bit floats
-    (``safewbc_jax.enable_x64``)."""
+    Rods are found as site pairs ``<rod>-anchor`` / ``<rod>-ball``, their lengths
+    measured in ``m``'s ``qpos0``.
+
+    Args:
+        m: the ``mujoco.MjModel``: a free joint on its first body (a child of the world),
+            at most one hinge (at the body's origin) on every other body, joint
+            actuators only (e.g. ``models/digit_controller.xml``).
+        dtype: the dtype of the model's arrays; float64 (the default) needs JAX's 64-bit
+            floats (``safewbc_jax.enable_x64``).
+        spring_suffixes: name suffixes of the spring joints, held at 0 as closed-chain
+            constraints.
+
+    Returns:
+        The model.
+
+    Raises:
+        RuntimeError: ``dtype`` is float64 and JAX's 64-bit floats are off.
+        ValueError: ``m`` is not such a tree (the message names the body, joint, actuator
+            or site), or a ``<rod>-anchor`` site has no ``<rod>-ball``.
+    """
     import mujoco
 
     if jnp.dtype(dtype) == jnp.float64:
@@ -302,14 +367,22 @@ def _kinematics_of(model: RobotModel, q, bodies):
     return xpos, xrot
 
 
-def forward_kinematics(model: RobotModel, q):
-    """World position and rotation of every body frame: (xpos [nb, 3], xrot [nb, 3, 3]).
+def forward_kinematics(model: RobotModel, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """World position and rotation of every body frame.
 
     Every body composes the transforms along its own path from the root, all bodies at
     once and depth by depth (the paths are padded with identities), written as
-    elementwise products: XLA on the CPU pays per operation, and this fuses into a handful
-    of kernels where a level-by-level pass with gathers and scatters takes sixty. The
-    products are the same, in the same order, as composing parent then child."""
+    elementwise products that XLA fuses into a few kernels. The products are the same, in
+    the same order, as composing parent then child.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+
+    Returns:
+        ``(xpos, xrot)``: positions [nb, 3] and rotation matrices [nb, 3, 3], world frame;
+            the ``kin`` argument of the closed-form functions below.
+    """
     return _kinematics_of(model, q, np.arange(len(model.body_names)))
 
 
@@ -334,9 +407,21 @@ def _dof_motion(model: RobotModel, xpos, xrot):
     return w, o, jnp.asarray(t, xpos.dtype)
 
 
-def point_jacobians(model: RobotModel, xpos, xrot, bodies, points):
-    """Linear and angular Jacobians (3 x nv each) of world points rigidly attached to the
-    given bodies: arrays [n, 3, nv]."""
+def point_jacobians(model: RobotModel, xpos: jax.Array, xrot: jax.Array,
+                    bodies: ArrayLike, points: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Linear and angular Jacobians of world points rigidly attached to bodies.
+
+    Args:
+        model: the robot model.
+        xpos: [nb, 3] body positions (``forward_kinematics``).
+        xrot: [nb, 3, 3] body rotations (``forward_kinematics``).
+        bodies: (n,) the body index of each point.
+        points: [n, 3] the points, world frame.
+
+    Returns:
+        ``(J_p, J_r)``: [n, 3, nv] each, the points' linear velocities and their bodies'
+            angular velocities (world frame) per unit of v.
+    """
     w, o, t = _dof_motion(model, xpos, xrot)
     mask = model.ancestor_dof[jnp.asarray(bodies)]  # [n, nv]
     lin = jnp.cross(w[None], points[:, None, :] - o[None]) + t[None]  # [n, nv, 3]
@@ -345,8 +430,19 @@ def point_jacobians(model: RobotModel, xpos, xrot, bodies, points):
     return jp, jr
 
 
-def body_com(model: RobotModel, xpos, xrot):
-    """World centre of mass of every body and the rotation of its principal axes."""
+def body_com(model: RobotModel, xpos: jax.Array,
+             xrot: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """World centre of mass of every body and the rotation of its principal axes.
+
+    Args:
+        model: the robot model.
+        xpos: [nb, 3] body positions (``forward_kinematics``).
+        xrot: [nb, 3, 3] body rotations (``forward_kinematics``).
+
+    Returns:
+        ``(com, irot)``: [nb, 3] centres of mass and [nb, 3, 3] principal-axis
+            rotations, world frame.
+    """
     com = xpos + jnp.einsum("bij,bj->bi", xrot, model.body_ipos)
     irot = xrot @ model.body_irot
     return com, irot
@@ -370,7 +466,15 @@ class BodyMotion(NamedTuple):
 
         x_dot = omega_b x x + c_b,      J_p_dot v = alpha_b x x + gamma_b + omega_b x x_dot,
 
-    and J_r_dot v = alpha_b (the bias terms: q_ddot = 0)."""
+    and J_r_dot v = alpha_b (the bias terms: q_ddot = 0).
+
+    Attributes:
+        omega: [nb, 3] angular velocities.
+        c: [nb, 3] velocity of the point of each body at the world origin.
+        alpha: [nb, 3] angular bias accelerations.
+        gamma: [nb, 3] bias acceleration of the point of each body at the world origin,
+            less omega x c.
+    """
 
     omega: jax.Array
     c: jax.Array
@@ -380,19 +484,41 @@ class BodyMotion(NamedTuple):
     def _of(self, field, bodies):
         return field if bodies is None else field[bodies]
 
-    def point_velocity(self, bodies, x):
-        """Velocities of points x [n, 3] fixed on ``bodies`` (None: one point per body)."""
+    def point_velocity(self, bodies: ArrayLike | None, x: jax.Array) -> jax.Array:
+        """Velocities of points fixed on bodies.
+
+        Args:
+            bodies: (n,) the body index of each point; None: one point per body, in
+                body order.
+            x: [n, 3] the points, world frame.
+
+        Returns:
+            [n, 3] their velocities, world frame.
+        """
         return jnp.cross(self._of(self.omega, bodies), x) + self._of(self.c, bodies)
 
-    def point_bias(self, bodies, x, xdot=None):
-        """J_p_dot v of points x [n, 3] fixed on ``bodies`` (None: one point per body)."""
+    def point_bias(self, bodies: ArrayLike | None, x: jax.Array,
+                   xdot: jax.Array | None = None) -> jax.Array:
+        """Bias accelerations J_p_dot v of points fixed on bodies.
+
+        Args:
+            bodies: (n,) the body index of each point; None: one point per body, in
+                body order.
+            x: [n, 3] the points, world frame.
+            xdot: [n, 3] their velocities where already computed (``point_velocity``);
+                None: computed here.
+
+        Returns:
+            [n, 3] their accelerations at q_ddot = 0, world frame.
+        """
         w = self._of(self.omega, bodies)
         xdot = self.point_velocity(bodies, x) if xdot is None else xdot
         return (jnp.cross(self._of(self.alpha, bodies), x) + self._of(self.gamma, bodies)
                 + jnp.cross(w, xdot))
 
 
-def body_motion(model: RobotModel, kin, v) -> BodyMotion:
+def body_motion(model: RobotModel, kin: tuple[jax.Array, jax.Array],
+                v: jax.Array) -> BodyMotion:
     """Body velocities and the drift (bias) accelerations of every body in closed form.
 
     With the per-dof motion of ``_dof_motion`` (axis w_k, anchor o_k, translation t_k),
@@ -406,9 +532,16 @@ def body_motion(model: RobotModel, kin, v) -> BodyMotion:
         alpha_b = sum_k m_bk v_k w_k_dot,
         gamma_b = -sum_k m_bk v_k (w_k_dot x o_k + w_k x o_k_dot),
 
-    two products with the mask instead of a forward-mode tangent of the kinematics (XLA on
-    the CPU pays per operation, and the tangent of the level-by-level kinematics and its
-    Jacobians costs three times as many operations as the kinematics)."""
+    two products with the mask instead of a forward-mode tangent of the kinematics.
+
+    Args:
+        model: the robot model.
+        kin: ``(xpos, xrot)`` of ``forward_kinematics`` at q.
+        v: (nv,) generalized velocity.
+
+    Returns:
+        Every body's velocity and bias acceleration.
+    """
     xpos, xrot = kin
     w, o, t = _dof_motion(model, xpos, xrot)
     mask = model.ancestor_dof
@@ -430,9 +563,19 @@ def _com_jacobians(model: RobotModel, q):
     return jp, jr, irot
 
 
-def com_jacobians(model: RobotModel, kin):
-    """Per body, from forward kinematics ``kin`` = (xpos, xrot): linear and angular
-    Jacobians of its centre of mass [nb, 3, nv], principal-axis rotation, CoM position."""
+def com_jacobians(model: RobotModel, kin: tuple[jax.Array, jax.Array],
+                  ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Per body, the Jacobians of its centre of mass.
+
+    Args:
+        model: the robot model.
+        kin: ``(xpos, xrot)`` of ``forward_kinematics``.
+
+    Returns:
+        ``(J_p, J_r, irot, com)``: linear and angular Jacobians of each body's centre of
+            mass [nb, 3, nv], its principal-axis rotation [nb, 3, 3] and its centre of
+            mass [nb, 3], world frame.
+    """
     xpos, xrot = kin
     com, irot = body_com(model, xpos, xrot)
     jp, jr = point_jacobians(model, xpos, xrot, np.arange(len(model.body_names)), com)
@@ -440,7 +583,15 @@ def com_jacobians(model: RobotModel, kin):
 
 
 class Dynamics(NamedTuple):
-    """M(q) (nv x nv), h(q, v) (nv), p_CoM (3), J_CoM (3 x nv), J_CoM_dot v (3)."""
+    """The equations of motion's terms and the centre of mass's at one state.
+
+    Attributes:
+        M: (nv, nv) mass matrix M(q), armature on the diagonal.
+        h: (nv,) h(q, v) = C(q, v) v + G(q).
+        com: (3,) whole-body centre of mass p_CoM, world frame.
+        J_com: (3, nv) its Jacobian J_CoM.
+        Jdot_v_com: (3,) its drift J_CoM_dot v.
+    """
 
     M: jax.Array
     h: jax.Array
@@ -531,22 +682,39 @@ def _joint_space(model: RobotModel, kin, comp):
     return mass, f_lin, (w, v0)
 
 
-def mass_matrix(model: RobotModel, q):
-    """M(q), nv x nv, armature (reflected rotor inertia) on the diagonal, by composite
-    rigid bodies (``_joint_space``)."""
+def mass_matrix(model: RobotModel, q: jax.Array) -> jax.Array:
+    """The mass matrix by composite rigid bodies (``_joint_space``).
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+
+    Returns:
+        (nv, nv) M(q), armature (reflected rotor inertia) on the diagonal.
+    """
     kin = forward_kinematics(model, q)
     comp, _, _ = _composite(model, kin, None)
     return _joint_space(model, kin, comp)[0]
 
 
-def dynamics(model: RobotModel, kin, motion: BodyMotion) -> Dynamics:
+def dynamics(model: RobotModel, kin: tuple[jax.Array, jax.Array],
+             motion: BodyMotion) -> Dynamics:
     """M, h and the CoM terms at one state, from its forward kinematics ``kin`` and body
     motion (``body_motion``), by composite rigid bodies about the world origin
     (``_composite``): M's entries are S_i . I^c S_j (``_joint_space``), and h (the paper's
     C(q, v) v + G(q) of eq. 1) is h_k = S_k . F^c_k, the spatial Newton-Euler forces of the
     subtree that dof k carries (the recursive Newton-Euler algorithm's backward pass,
     as one product). Equal to the virtual-work sum over the bodies' CoM Jacobians,
-    sum_b J_b^T (m_b (a_b - g), I_b alpha_b + omega_b x I_b omega_b)."""
+    sum_b J_b^T (m_b (a_b - g), I_b alpha_b + omega_b x I_b omega_b).
+
+    Args:
+        model: the robot model.
+        kin: ``(xpos, xrot)`` of ``forward_kinematics`` at q.
+        motion: ``body_motion`` at (q, v).
+
+    Returns:
+        M, h and the CoM terms.
+    """
     comp, com, acc = _composite(model, kin, motion)
     mass, f_lin, (w, v0) = _joint_space(model, kin, comp)
     h = jnp.sum(w * comp[:, 10:13] + v0 * comp[:, 13:16], axis=1)
@@ -555,13 +723,31 @@ def dynamics(model: RobotModel, kin, motion: BodyMotion) -> Dynamics:
                     Jdot_v_com=model.body_mass @ acc / mtot)
 
 
-def bias_forces(model: RobotModel, q, v):
-    """h(q, v) = C(q, v) v + G(q): Coriolis, centrifugal and gravity forces (nv)."""
+def bias_forces(model: RobotModel, q: jax.Array, v: jax.Array) -> jax.Array:
+    """Coriolis, centrifugal and gravity forces.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        v: (nv,) generalized velocity.
+
+    Returns:
+        (nv,) h(q, v) = C(q, v) v + G(q).
+    """
     return dynamics_and_com(model, q, v).h
 
 
-def dynamics_and_com(model: RobotModel, q, v):
-    """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v (``dynamics``) from q and v."""
+def dynamics_and_com(model: RobotModel, q: jax.Array, v: jax.Array) -> Dynamics:
+    """M(q), h(q, v), p_CoM, J_CoM and J_CoM_dot v (``dynamics``) from q and v.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        v: (nv,) generalized velocity.
+
+    Returns:
+        M, h and the CoM terms.
+    """
     kin = forward_kinematics(model, q)
     return dynamics(model, kin, body_motion(model, kin, v))
 
@@ -570,17 +756,41 @@ def dynamics_and_com(model: RobotModel, q, v):
 # Frames, CoM, torso orientation
 # --------------------------------------------------------------------------------------
 
-def frame_pose(model: RobotModel, q, frame: str):
-    """World position and rotation matrix of a named site (e.g. ``left-sole``)."""
+def frame_pose(model: RobotModel, q: jax.Array, frame: str) -> tuple[jax.Array, jax.Array]:
+    """World position and rotation matrix of a named site.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        frame: the site's name (e.g. ``left-sole``).
+
+    Returns:
+        ``(p, R)``: (3,) position and (3, 3) rotation matrix, world frame.
+
+    Raises:
+        KeyError: no site has that name.
+    """
     s = model.site_id(frame)
     b = model.site_body[s]
     xpos, xrot = _kinematics_of(model, q, np.array([b]))  # only the body's own path
     return xpos[0] + xrot[0] @ model.site_pos[s], xrot[0] @ model.site_rot[s]
 
 
-def frame_jacobian(model: RobotModel, q, frame: str):
-    """6D Jacobian of a site, rows [linear velocity of its origin; angular velocity], both in
-    the world frame (6 x nv)."""
+def frame_jacobian(model: RobotModel, q: jax.Array, frame: str) -> jax.Array:
+    """6D Jacobian of a site.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        frame: the site's name.
+
+    Returns:
+        (6, nv) rows [linear velocity of its origin; angular velocity], both in the world
+            frame.
+
+    Raises:
+        KeyError: no site has that name.
+    """
     s = model.site_id(frame)
     xpos, xrot = forward_kinematics(model, q)
     b = model.site_body[s]
@@ -589,45 +799,109 @@ def frame_jacobian(model: RobotModel, q, frame: str):
     return jnp.concatenate([jp[0], jr[0]], axis=0)
 
 
-def frame_drift(model: RobotModel, q, v, frame: str):
-    """J_dot v of the 6D site Jacobian: [linear acceleration bias; angular]."""
+def frame_drift(model: RobotModel, q: jax.Array, v: jax.Array, frame: str) -> jax.Array:
+    """J_dot v of a site's 6D Jacobian (``frame_jacobian``), by forward-mode AD.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        v: (nv,) generalized velocity.
+        frame: the site's name.
+
+    Returns:
+        (6,) [linear acceleration bias; angular], world frame.
+
+    Raises:
+        KeyError: no site has that name.
+    """
     return spatial.derivative_along(lambda qq: frame_jacobian(model, qq, frame) @ v, q, v)
 
 
-def com_position(model: RobotModel, q):
-    """Whole-body centre of mass (world)."""
+def com_position(model: RobotModel, q: jax.Array) -> jax.Array:
+    """Whole-body centre of mass.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+
+    Returns:
+        (3,) p_CoM, world frame.
+    """
     xpos, xrot = forward_kinematics(model, q)
     com, _ = body_com(model, xpos, xrot)
     return model.body_mass @ com / jnp.sum(model.body_mass)
 
 
-def com_jacobian(model: RobotModel, q):
-    """3 x nv Jacobian of the centre of mass."""
+def com_jacobian(model: RobotModel, q: jax.Array) -> jax.Array:
+    """Jacobian of the whole-body centre of mass.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+
+    Returns:
+        (3, nv) J_CoM.
+    """
     jp, _, _ = _com_jacobians(model, q)
     return jnp.einsum("b,bin->in", model.body_mass, jp) / jnp.sum(model.body_mass)
 
 
-def com_drift(model: RobotModel, q, v):
-    """J_com_dot v."""
+def com_drift(model: RobotModel, q: jax.Array, v: jax.Array) -> jax.Array:
+    """Drift of the whole-body centre of mass, by forward-mode AD.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        v: (nv,) generalized velocity.
+
+    Returns:
+        (3,) J_CoM_dot v.
+    """
     return spatial.derivative_along(lambda qq: com_jacobian(model, qq) @ v, q, v)
 
 
-def torso_euler(model: RobotModel, q):
-    """Torso (base) orientation as Euler ZYX angles [roll, pitch, yaw]."""
+def torso_euler(model: RobotModel, q: jax.Array) -> jax.Array:
+    """Torso (base) orientation as Euler ZYX angles.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+
+    Returns:
+        (3,) [roll, pitch, yaw], rad.
+    """
     return spatial.euler_zyx(spatial.quat_to_mat(q[3:7]))
 
 
-def torso_euler_jacobian(model: RobotModel, q):
-    """3 x nv Jacobian of :func:`torso_euler` (by forward-mode AD)."""
+def torso_euler_jacobian(model: RobotModel, q: jax.Array) -> jax.Array:
+    """Jacobian of ``torso_euler``, by forward-mode AD.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+
+    Returns:
+        (3, nv) J_theta.
+    """
     return spatial.tangent_jacobian(lambda qq: torso_euler(model, qq), q, model.nv)
 
 
-def torso_euler_drift(model: RobotModel, q, v):
-    """J_dot v of the torso Euler angles: their second derivative along v."""
+def torso_euler_drift(model: RobotModel, q: jax.Array, v: jax.Array) -> jax.Array:
+    """Drift of the torso Euler angles: their second derivative along v (forward-mode AD).
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        v: (nv,) generalized velocity.
+
+    Returns:
+        (3,) J_theta_dot v.
+    """
     return spatial.second_derivative_along(lambda qq: torso_euler(model, qq), q, v)
 
 
-def torso_euler_terms(model: RobotModel, q, v):
+def torso_euler_terms(model: RobotModel, q: jax.Array,
+                      v: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(theta, J_theta, J_theta_dot v) of the torso Euler ZYX angles in closed form.
 
     With the base's body-frame angular velocity omega = v[3:6] (MuJoCo's free joint) and
@@ -641,7 +915,16 @@ def torso_euler_terms(model: RobotModel, q, v):
     dE/dr omega = [t_p b, -a, b / c_p], dE/dp omega = [a / c_p^2, 0, a s_p / c_p^2],
     r_dot = w_x + t_p a, p_dot = b. Equal to ``torso_euler_jacobian`` and
     ``torso_euler_drift`` (forward-mode AD) away from pitch = +-pi/2, where both are
-    singular."""
+    singular.
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        v: (nv,) generalized velocity.
+
+    Returns:
+        ``(theta, J_theta, J_theta_dot v)``: (3,) [roll, pitch, yaw], (3, nv), (3,).
+    """
     theta = torso_euler(model, q)
     k0 = model.body_dadr[0]
     e, drift = _euler_rate_map(theta, v[k0 + 3:k0 + 6])
@@ -677,27 +960,58 @@ def _site_motion_terms(model: RobotModel, kin, frame: str):
     return b, p, xrot[b] @ model.site_rot[s], jp[0], jw[0]
 
 
-def frame_orientation_terms(model: RobotModel, kin, motion: BodyMotion, frame: str):
+def frame_orientation_terms(model: RobotModel, kin: tuple[jax.Array, jax.Array],
+                            motion: BodyMotion,
+                            frame: str) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(theta, J_theta, J_theta_dot v) of a site's Euler ZYX angles [roll, pitch, yaw] in
     closed form. The site's body-frame angular velocity is w = R^T omega (omega, alpha:
     its body's world angular velocity and bias acceleration, ``body_motion``), and along
     q_ddot = 0, w_dot = R^T alpha (R^T omega x omega vanishes); with theta_dot = E w as for
     the torso (``torso_euler_terms``): J_theta = E R^T J_omega, J_theta_dot v = E_dot w +
-    E R^T alpha. Singular at pitch = +-pi/2, as any Euler parametrisation."""
+    E R^T alpha. Singular at pitch = +-pi/2, as any Euler parametrisation.
+
+    Args:
+        model: the robot model.
+        kin: ``(xpos, xrot)`` of ``forward_kinematics`` at q.
+        motion: ``body_motion`` at (q, v).
+        frame: the site's name.
+
+    Returns:
+        ``(theta, J_theta, J_theta_dot v)``: (3,) [roll, pitch, yaw], (3, nv), (3,).
+
+    Raises:
+        KeyError: no site has that name.
+    """
     b, _, r, _, jw = _site_motion_terms(model, kin, frame)
     theta = spatial.euler_zyx(r)
     e, drift = _euler_rate_map(theta, r.T @ motion.omega[b])
     return theta, e @ (r.T @ jw), drift + e @ (r.T @ motion.alpha[b])
 
 
-def site_point_terms(model: RobotModel, kin, motion: BodyMotion, frame: str):
-    """(p, J_p, J_p_dot v) of a site's world position in closed form, from one kinematics
-    pass ``kin`` and the body motion (``body_motion``) at the step's (q, v)."""
+def site_point_terms(model: RobotModel, kin: tuple[jax.Array, jax.Array],
+                     motion: BodyMotion,
+                     frame: str) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(p, J_p, J_p_dot v) of a site's world position in closed form.
+
+    Args:
+        model: the robot model.
+        kin: ``(xpos, xrot)`` of ``forward_kinematics`` at q.
+        motion: ``body_motion`` at (q, v).
+        frame: the site's name.
+
+    Returns:
+        ``(p, J_p, J_p_dot v)``: (3,), (3, nv), (3,), world frame.
+
+    Raises:
+        KeyError: no site has that name.
+    """
     b, p, _, jp, _ = _site_motion_terms(model, kin, frame)
     return p, jp, motion.point_bias(np.array([b]), p[None])[0]
 
 
-def position_in_terms(model: RobotModel, kin, motion: BodyMotion, frame: str, reference: str):
+def position_in_terms(model: RobotModel, kin: tuple[jax.Array, jax.Array],
+                      motion: BodyMotion, frame: str,
+                      reference: str) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(y, J_y, J_y_dot v) of y = R_r^T (p_f - p_r), ``frame``'s position in the frame
     ``reference`` (``frame_position_in``), in closed form. With d = p_f - p_r and the
     reference body's angular velocity w and bias acceleration w_dot (world):
@@ -706,7 +1020,21 @@ def position_in_terms(model: RobotModel, kin, motion: BodyMotion, frame: str, re
         J_y_dot v = R_r^T (d_ddot - w_dot x d - 2 w x d_dot + w x (w x d)),
 
     d_ddot the two points' bias accelerations (q_ddot = 0), as the A-ECBF row (eq. 28)
-    needs them: no automatic differentiation of the kinematics."""
+    needs them: no automatic differentiation of the kinematics.
+
+    Args:
+        model: the robot model.
+        kin: ``(xpos, xrot)`` of ``forward_kinematics`` at q.
+        motion: ``body_motion`` at (q, v).
+        frame: the site whose position is taken.
+        reference: the site in whose frame it is expressed.
+
+    Returns:
+        ``(y, J_y, J_y_dot v)``: (3,), (3, nv), (3,), in ``reference``'s frame.
+
+    Raises:
+        KeyError: no site has one of the names.
+    """
     f, p_f, _, j_f, _ = _site_motion_terms(model, kin, frame)
     b, p_r, rot, j_r, jw = _site_motion_terms(model, kin, reference)
     v_f = motion.point_velocity(np.array([f]), p_f[None])
@@ -722,9 +1050,23 @@ def position_in_terms(model: RobotModel, kin, motion: BodyMotion, frame: str, re
     return rot.T @ d, jy, rot.T @ bias
 
 
-def frame_position_in(model: RobotModel, q, frame: str, reference: str):
-    """Position of ``frame`` expressed in the frame ``reference`` (e.g. a fist in the torso
-    base frame, as the paper's arm barrier uses)."""
+def frame_position_in(model: RobotModel, q: jax.Array, frame: str,
+                      reference: str) -> jax.Array:
+    """Position of a site expressed in another site's frame (e.g. a fist in the torso
+    base frame, as the paper's arm barrier uses).
+
+    Args:
+        model: the robot model.
+        q: (nq,) configuration.
+        frame: the site whose position is taken.
+        reference: the site in whose frame it is expressed.
+
+    Returns:
+        (3,) R_r^T (p_f - p_r).
+
+    Raises:
+        KeyError: no site has one of the names.
+    """
     p, _ = frame_pose(model, q, frame)
     p0, r0 = frame_pose(model, q, reference)
     return r0.T @ (p - p0)

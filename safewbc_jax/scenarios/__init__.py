@@ -12,6 +12,7 @@ import jax.numpy as jnp
 
 from safewbc_jax.base import userfile
 from safewbc_jax.control import outputs, references, walking
+from safewbc_jax.control.push import Push
 from safewbc_jax.control.safesets import SafeSet, SafeSetError, load
 from safewbc_jax.control.scenario import Scenario, start_state  # noqa: F401  (re-exported)
 from safewbc_jax.control.tasks import Task
@@ -93,6 +94,7 @@ def arms() -> Scenario:
 
 SCENARIOS = {"squat": squat(), "bow": bow(), "arms": arms()}
 WALKING = ("walk", "push")
+PAPER_PUSH = (0.0, -30.0, 0.0)   # N: the paper's lateral push (to the right), at PUSH_AT
 
 
 def names() -> tuple:
@@ -109,7 +111,8 @@ def get_scenario(name, barrier: bool = True, safe_sets=()) -> Scenario:
     if isinstance(name, Scenario):
         sc = name
     elif name in WALKING:
-        sc = walking.make_scenario(name, 20.0 if name == "walk" else 8.0)
+        sc = (walking.make_scenario(name, 20.0) if name == "walk" else
+              walking.make_scenario(name, 8.0, Push.single(PAPER_PUSH)))
     elif name in SCENARIOS:
         sc = SCENARIOS[name]
     elif userfile.is_ref(name):

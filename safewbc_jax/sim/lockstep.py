@@ -137,8 +137,7 @@ class Lockstep:
             tally, state = lay.tally.unpack(control.tally[i]), lay.state.unpack(control.state[i])
             fell = bool(res.fell_step[i] >= 0)
             acc = jax.tree_util.tree_map(operator.itemgetter(i), res.plant)
-            flat_cols = metrics.finalize(tally.acc, acc, fell,
-                                         state.gait if self.step.walking else None)
+            flat_cols = metrics.finalize(self.leader.scenario, tally.acc, acc, fell, state.gait)
             out[i] = Outcome(flat_cols, fell, int(res.fell_step[i]))
         return out
 

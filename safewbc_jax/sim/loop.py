@@ -28,7 +28,7 @@ import numpy as np
 from safewbc_jax.control import metrics
 from safewbc_jax.control.step import fallen
 from safewbc_jax.model.modelinfo import loop_residual
-from safewbc_jax.sim.push import force_at
+from safewbc_jax.control.push import force_at
 
 
 class LaneStep(NamedTuple):

@@ -26,7 +26,8 @@ from safewbc_jax.control.step import Measurement
 from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.model.modelinfo import control_substeps, foot_contact_ids, loop_site_pairs
 from safewbc_jax.control.params import ControllerParams
-from safewbc_jax.sim.push import Push
+from safewbc_jax.control.push import Push
+from safewbc_jax.sim.runlog import RunLog
 from safewbc_jax.sim.runspec import RunSpec
 from safewbc_jax.sim.loop import LaneControl, LaneStep, simulate
 from safewbc_jax.solvers.result import fallback_name
@@ -223,28 +224,20 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
     the step's command was computed from, after the command is out and outside every
     timed part (``benchmarks/controller_step.py`` runs TSID there, on the same states).
 
-    The log's ``stance`` and ``missed_touchdowns`` at step k are the domain step k's QP ran
-    in (the gait advanced from step k's measurement).
+    The log's ``stance`` and the gait's record fields at step k are those of the domain
+    step k's QP ran in (the gait advanced from step k's measurement); with a gait that
+    has ``diagnostics`` (the ALIP gait), its values per step are ``gait_diagnostics``.
     """
     n_steps, settle, duration = cfg.schedule()
     ctl = cfg.controller(params)
     sim = SimRobot(ctl.motors.names, cfg.control_dt)
     ms, model, d = sim.ms, sim.model, sim.d
-    scenario, walking = ctl.scenario, ctl.walking
-    if walking:
-        from safewbc_jax.control.walking import diagnostics as walking_diag
-
-        diag_fn = jax.jit(partial(walking_diag, model))
+    scenario, walking, gait = ctl.scenario, ctl.walking, ctl.scenario.gait
+    diagnostics = getattr(gait, "diagnostics", None)
+    diag_fn = None if diagnostics is None else jax.jit(partial(diagnostics, model))
     names = [o.name for o in scenario.outputs]
     hnames = [b.name for b in scenario.barriers + scenario.monitors]
-    log: dict[str, list] = {k: [] for k in (
-        "t", "tau", "u", "status", "fallback", "t_qp", "t_solve", "latency", "zmp_margin",
-        "eq_residual", "loop_residual", "base_z", "lambda", "qpos", "stance", "leg_contact",
-        "missed_touchdowns", "alip")}
-    for nm in names:
-        log[f"y_{nm}"], log[f"yd_{nm}"] = [], []
-    for hn in hnames:
-        log[f"h_{hn}"] = []
+    log = RunLog(n_steps)
     recorded = []
     if progress is not None:
         progress(0, n_steps, "compiling")
@@ -255,28 +248,22 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
         fb = fallback_name(rec.fallback) if rec.ok else "held"
         if cfg.record_qps_every and k % cfg.record_qps_every == 0:
             recorded.append((k, ctl.last_qp(), int(rec.status), fb))
-        log["t"].append(k * cfg.control_dt), log["tau"].append(float(rec.tau))
-        log["u"].append(cmd.u), log["status"].append(int(rec.status))
-        log["fallback"].append(fb)
-        log["t_qp"].append(hr.t_qp), log["t_solve"].append(hr.t_solve)
-        log["latency"].append(cmd.latency_us)
-        log["eq_residual"].append(float(rec.eq_residual)), log["lambda"].append(rec.lam)
-        log["zmp_margin"].append(float(rec.zmp_margin))
-        log["stance"].append(float(rec.stance)), log["missed_touchdowns"].append(int(rec.missed))
-        for nm in names:
-            log[f"y_{nm}"].append(rec.y[nm]), log[f"yd_{nm}"].append(rec.yd[nm])
-        for hn in hnames:
-            log[f"h_{hn}"].append(float(rec.h[hn]))
-        log["alip"].append(np.asarray(diag_fn(hr.q, hr.v, hr.domain)) if walking
-                           else np.zeros(0))
-        log["leg_contact"].append(legs), log["loop_residual"].append(loop_res)
-        log["base_z"].append(float(d.xpos[sim.base_id][2]))
-        log["qpos"].append(d.qpos.copy())
+        log.put(k, t=k * cfg.control_dt, tau=float(rec.tau), u=cmd.u, status=int(rec.status),
+                fallback=fb, t_qp=hr.t_qp, t_solve=hr.t_solve, latency=cmd.latency_us,
+                zmp_margin=float(rec.zmp_margin), eq_residual=float(rec.eq_residual),
+                loop_residual=loop_res, base_z=float(d.xpos[sim.base_id][2]),
+                qpos=d.qpos, stance=float(rec.stance), leg_contact=legs, **rec.gait,
+                **{"lambda": rec.lam})
+        log.put(k, **{f"y_{nm}": rec.y[nm] for nm in names},
+                **{f"yd_{nm}": rec.yd[nm] for nm in names},
+                **{f"h_{hn}": float(rec.h[hn]) for hn in hnames})
+        if diag_fn is not None:
+            log.put(k, gait_diagnostics=np.asarray(diag_fn(hr.q, hr.v, hr.domain)))
         if progress is not None:
             progress(k + 1, n_steps, "standing" if rec.tau < 0 else "motion")
 
     fell, _, plant = rollout(sim, ctl, n_steps, cfg.push, on_step, observer)
-    arrays = {k: np.asarray(v) for k, v in log.items()}
+    arrays = log.arrays()
     arrays["compile_s"] = np.asarray(compile_s)
     if recorded:
         fields = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
@@ -286,11 +273,11 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
         arrays["qp_status"] = np.array([r[2] for r in recorded])
         arrays["qp_fallback"] = np.array([r[3] for r in recorded])
     st = ctl.state
-    flat = metrics.finalize(ctl.tally.acc, plant, fell, st.gait if walking else None)
+    flat = metrics.finalize(scenario, ctl.tally.acc, plant, fell, st.gait)
     tau = arrays["tau"]
     return arrays, dict(fell=fell, settle=settle, duration=duration, n_sub=sim.n_sub,
                         duration_s=float(max(tau[-1], 0.0) + cfg.control_dt) if tau.size else 0.0,
-                        steps_taken=int(st.gait.steps) if walking else 0, walking=walking,
+                        walking=walking,
                         sim_dt=float(ms.opt.timestep), torque_limit=np.asarray(model.torque_limit),
                         outputs=names, barriers=[b.name for b in scenario.barriers],
                         monitors=[b.name for b in scenario.monitors],

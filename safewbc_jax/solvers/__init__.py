@@ -64,10 +64,16 @@ solver="jax"   ``jax_qp`` (pure JAX, batched). ``structure="auto"`` uses the con
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from safewbc_jax.solvers.status import INFEASIBLE, MAX_ITER, NUMERICAL, SOLVED, SolveStatus
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike, DTypeLike
+
+    from safewbc_jax.solvers.settings import Settings
 
 SOLVERS = ("jax", "piqp")
 
@@ -231,16 +237,64 @@ def _jax(qp, fallback, structure, nv, nu, dtype, settings):
     return x, status
 
 
-def solve_qp(P, q, G=None, h=None, A=None, b=None, lb=None, ub=None, solver: str = "jax", *,
-             soft=None, fallback: bool = False, structure: str = "auto", nv: int | None = None,
-             nu: int | None = None, dtype=None, settings=None, initvals=None, **solver_settings):
-    """Solve one QP or a batch with ``solver`` "jax" or "piqp"; see the module docstring.
+def solve_qp(P: ArrayLike, q: ArrayLike, G: ArrayLike | None = None,
+             h: ArrayLike | None = None, A: ArrayLike | None = None,
+             b: ArrayLike | None = None, lb: ArrayLike | None = None,
+             ub: ArrayLike | None = None, solver: str = "jax", *,
+             soft: ArrayLike | None = None, fallback: bool = False, structure: str = "auto",
+             nv: int | None = None, nu: int | None = None, dtype: DTypeLike | None = None,
+             settings: Settings | None = None, initvals: Any = None,
+             **solver_settings: Any,
+             ) -> tuple[np.ndarray | None, SolveStatus] | tuple[np.ndarray, np.ndarray]:
+    """Solve one QP or a batch: minimize 1/2 x'Px + q'x subject to G x <= h, A x = b,
+    lb <= x <= ub.
 
-    ``soft``: (mi,) 1.0 on the rows of G that the fallback may relax (default none).
-    ``nv``, ``nu``: the block sizes of the controller's X (structure "controller", and
-    "auto" to consider it); None: a plain QP.
-    ``initvals``: accepted for qpsolvers compatibility and ignored (neither solver warm
-    starts: PIQP 0.7 has no initial-iterate input, the JAX solver starts each batch cold).
+    The arguments are ``qpsolvers.solve_qp``'s, in its order, None for an absent part;
+    the module docstring lists the forms accepted and the outcome of each edge case. In a
+    batch every given array has the same leading axis B.
+
+    Args:
+        P: (n, n) symmetric positive semidefinite cost matrix, or (B, n, n) for a batch;
+            for one QP also a scipy.sparse matrix or nested lists.
+        q: (n,) linear cost, (B, n) in a batch.
+        G: (mi, n) inequality rows, (B, mi, n) in a batch; given with ``h``.
+        h: (mi,) their bounds (+inf entries allowed), (B, mi) in a batch.
+        A: (me, n) equality rows, (B, me, n) in a batch; given with ``b``.
+        b: (me,) their right-hand sides, (B, me) in a batch.
+        lb: (n,) lower bounds on x (-inf entries: unbounded), (B, n) in a batch.
+        ub: (n,) upper bounds on x (+inf entries: unbounded), (B, n) in a batch.
+        solver: "jax" (``jax_qp``, batched, pure JAX) or "piqp" (the PIQP path, one QP
+            after the other).
+        soft: (mi,) 1.0 on the rows of G that the fallback may relax (default none).
+        fallback: False: x only where the QP as posed is solved (qpsolvers' semantics);
+            True: the project's fallback policy (the QP with its ``soft`` rows relaxed
+            where the QP as posed is not solved).
+        structure: solver "jax": "auto" (the controller's structure where ``nv`` and
+            ``nu`` are given and the QP has it, else generic), "controller" or "generic".
+        nv: the q_ddot block size of the controller's X = [q_ddot (nv), u (nu),
+            lambda (nc)], with ``nu``; None: a plain QP.
+        nu: the torque block size of X, with ``nv``.
+        dtype: solver "jax": float64 (None, the default; needs ``enable_x64``) or float32.
+        settings: solver "jax": a ``jax_qp.Settings`` (None: the defaults).
+        initvals: accepted for qpsolvers compatibility and ignored (neither solver warm
+            starts: PIQP 0.7 has no initial-iterate input, the JAX solver starts each
+            batch cold).
+        **solver_settings: solver "piqp": PIQP settings (eps_abs, max_iter, ...).
+
+    Returns:
+        ``(x, status)``. One QP: x a float64 (n,) numpy array, or None where there is no
+            usable solution, and status a ``SolveStatus`` of the QP as posed. A batch:
+            x of shape (B, n), all-NaN rows where there is no usable solution, and status
+            an int32 (B,) numpy array of the codes.
+
+    Raises:
+        ValueError: an unknown ``solver`` or ``structure``; a shape that does not match
+            (the message names the argument); G without h or A without b (or the
+            reverse); ``nv`` without ``nu``; structure "controller" without ``nv`` and
+            ``nu`` or on a QP without that structure; solver "jax"'s generic path with
+            more equality rows than variables; ``dtype`` or ``settings`` with solver
+            "piqp", PIQP settings with solver "jax".
+        RuntimeError: solver "jax" in float64 without JAX's 64-bit floats.
     """
     del initvals
     if solver not in SOLVERS:

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 
@@ -38,7 +38,13 @@ Array = Any
 
 
 class Blocks(NamedTuple):
-    """The block sizes of X = [q_ddot (nv), u (nu), lambda (nc)] (nc None: the rest)."""
+    """The block sizes of X = [q_ddot (nv), u (nu), lambda (nc)].
+
+    Attributes:
+        nv: size of the q_ddot block.
+        nu: size of the torques' block u.
+        nc: size of the contact forces' block lambda; None: the rest of X.
+    """
 
     nv: int
     nu: int
@@ -49,8 +55,15 @@ class Blocks(NamedTuple):
         """The torques' entries of X."""
         return slice(self.nv, self.nv + self.nu)
 
-    def split(self, x):
-        """X -> (q_ddot, u, lambda); works on leading batch dimensions of x."""
+    def split(self, x: Array) -> tuple[Array, Array, Array]:
+        """Split X into its blocks.
+
+        Args:
+            x: (..., n) values of X, with any leading batch dimensions.
+
+        Returns:
+            ``(q_ddot, u, lambda)``, each with x's leading dimensions.
+        """
         nv, nu = self.nv, self.nu
         return x[..., :nv], x[..., nv:nv + nu], x[..., nv + nu:]
 
@@ -59,6 +72,30 @@ class Blocks(NamedTuple):
          meta_fields=["nv", "nu", "nc", "ng_lambda"])
 @dataclasses.dataclass(frozen=True)
 class QP:
+    """One QP (or a batch of them, a leading axis on every array), at fixed shapes.
+
+    minimize 1/2 x^T P x + q^T x subject to A x = b, G x <= h, lb <= x <= ub. The
+    arrays are JAX arrays in the jitted step, NumPy ones on the host (PIQP's) path; the
+    block sizes are static (the module docstring).
+
+    Args:
+        P: (n, n) symmetric positive semidefinite cost matrix.
+        q: (n,) linear cost.
+        A: (me, n) equality rows.
+        b: (me,) their right-hand sides.
+        G: (mi, n) inequality rows.
+        h: (mi,) their bounds.
+        lb: (n,) lower bounds on x, -inf where unbounded.
+        ub: (n,) upper bounds on x, +inf where unbounded.
+        soft: (mi,) 1.0 where the fallback may relax the row of G, else 0.0.
+        nv: for the controller's X = [q_ddot (nv), u (nu), lambda (nc)]: the q_ddot
+            block's size; None: no such blocks.
+        nu: the torques' block size (None with ``nv``).
+        nc: the contact forces' block size (None: the rest, or no blocks).
+        ng_lambda: the first ``ng_lambda`` rows of G are on lambda only, the rest on
+            q_ddot only; None: no such layout is claimed.
+    """
+
     P: Array   # (n, n) symmetric positive semidefinite
     q: Array   # (n,)
     A: Array   # (me, n)
@@ -75,6 +112,7 @@ class QP:
 
     @property
     def n(self) -> int:
+        """The number of variables."""
         return self.P.shape[-1]
 
     @property
@@ -84,30 +122,60 @@ class QP:
 
     @property
     def blocks(self) -> Blocks:
-        """The block sizes (ValueError for a QP that carries none)."""
+        """The block sizes.
+
+        Raises:
+            ValueError: the QP carries none (``has_blocks`` False).
+        """
         if not self.has_blocks:
             raise ValueError("this QP carries no block sizes (nv, nu): it is not the "
                              "controller's QP of qp.assemble")
         assert self.nv is not None and self.nu is not None      # has_blocks
         return Blocks(self.nv, self.nu, self.nc)
 
-    def split(self, x):
-        """X -> (q_ddot, u, lambda) at the QP's block sizes; leading batch dimensions of x
-        allowed."""
+    def split(self, x: Array) -> tuple[Array, Array, Array]:
+        """Split X at the QP's block sizes.
+
+        Args:
+            x: (..., n) values of X, with any leading batch dimensions.
+
+        Returns:
+            ``(q_ddot, u, lambda)``, each with x's leading dimensions.
+
+        Raises:
+            ValueError: the QP carries no block sizes.
+        """
         return self.blocks.split(x)
 
-    def arrays(self) -> tuple:
-        """The array fields in ``FIELDS`` order."""
+    def arrays(self) -> tuple[Array, ...]:
+        """The array fields.
+
+        Returns:
+            The arrays in ``FIELDS`` order (the positional constructor's).
+        """
         return tuple(getattr(self, f) for f in FIELDS)
 
-    def row(self, i: int) -> "QP":
-        """The i-th QP of a batch of them (each array's leading axis; one lane's, or one
-        recorded step's)."""
+    def row(self, i: int) -> QP:
+        """One QP of a batch of them (one lane's, or one recorded step's).
+
+        Args:
+            i: its index on each array's leading axis.
+
+        Returns:
+            The i-th QP, with this QP's block sizes.
+        """
         return QP(*(getattr(self, f)[i] for f in FIELDS), nv=self.nv,  # type: ignore[misc]
                   nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda)
 
-    def with_arrays(self, fn) -> "QP":
-        """fn applied to every array field, the block sizes kept (``tree_map``'s result,
-        without its flattening: the host path calls this every control step)."""
+    def with_arrays(self, fn: Callable[[Array], Array]) -> QP:
+        """Map every array field, the block sizes kept (``tree_map``'s result, without its
+        flattening).
+
+        Args:
+            fn: applied to each array field (e.g. ``jnp.asarray``, ``np.asarray``).
+
+        Returns:
+            The QP of ``fn``'s results.
+        """
         return QP(*(fn(getattr(self, f)) for f in FIELDS),  # type: ignore[misc]
                   nv=self.nv, nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda)

@@ -26,21 +26,23 @@ NOT_ATTEMPTED = -1     # relaxed_status where the relaxed QP was not solved
 class SolveResult(NamedTuple):
     """Per-QP outcome (leading batch dimension on every field in a batch).
 
-    x               (n,) the solution of the QP as posed (fallback NONE), of the relaxed
-                    QP (RELAXED), or all NaN (FAILED)
-    status          SolveStatus code of the QP as posed, after the acceptance check
-    fallback        FALLBACK_NONE / FALLBACK_RELAXED / FALLBACK_FAILED
-    relaxed_status  SolveStatus code of the relaxed solve, NOT_ATTEMPTED (-1) where it was
-                    not needed
-    iterations      interior-point iterations, both solves together
-    max_slack       largest soft-row slack of the relaxed solution (0 for NONE, NaN FAILED)
-    eq_residual     max |A x - b| (NaN for FAILED)
-    ineq_violation  max violation of G x <= h and the bounds, soft rows included (NaN
-                    for FAILED)
-    hard_violation  the same over hard rows and bounds only (NaN for FAILED)
-    polished        the returned x is the JAX solver's active-set polish (an exact KKT
-                    point); False on the PIQP path, which has no polish
-    polish_iterations  KKT solves of the polish, both solves together (0 on PIQP)
+    Attributes:
+        x: (n,) the solution of the QP as posed (fallback NONE), of the relaxed QP
+            (RELAXED), or all NaN (FAILED).
+        status: SolveStatus code of the QP as posed, after the acceptance check.
+        fallback: FALLBACK_NONE / FALLBACK_RELAXED / FALLBACK_FAILED.
+        relaxed_status: SolveStatus code of the relaxed solve, NOT_ATTEMPTED (-1) where
+            it was not needed.
+        iterations: interior-point iterations, both solves together.
+        max_slack: largest soft-row slack of the relaxed solution (0 for NONE, NaN for
+            FAILED).
+        eq_residual: max |A x - b| (NaN for FAILED).
+        ineq_violation: max violation of G x <= h and the bounds, soft rows included
+            (NaN for FAILED).
+        hard_violation: the same over hard rows and bounds only (NaN for FAILED).
+        polished: the returned x is the JAX solver's active-set polish (an exact KKT
+            point); False on the PIQP path, which has no polish.
+        polish_iterations: KKT solves of the polish, both solves together (0 on PIQP).
     """
 
     x: Any
@@ -57,8 +59,16 @@ class SolveResult(NamedTuple):
 
 
 def row(res: SolveResult, i: int) -> SolveResult:
-    """Row ``i`` of a host SolveResult of arrays (leading axis L) as one QP's: x a numpy
-    row, the other fields plain Python values, status a SolveStatus."""
+    """One QP's result out of a host SolveResult of arrays.
+
+    Args:
+        res: a SolveResult of numpy arrays with a leading axis L.
+        i: the row, 0 <= i < L.
+
+    Returns:
+        Row ``i`` as one QP's result: x a numpy row, the other fields plain Python
+        values, status a SolveStatus.
+    """
     return SolveResult(
         x=res.x[i], status=SolveStatus(int(res.status[i])), fallback=int(res.fallback[i]),
         relaxed_status=int(res.relaxed_status[i]), iterations=int(res.iterations[i]),
@@ -67,9 +77,18 @@ def row(res: SolveResult, i: int) -> SolveResult:
         polished=bool(res.polished[i]), polish_iterations=int(res.polish_iterations[i]))
 
 
-def failed(n: int, status=SolveStatus.NUMERICAL) -> SolveResult:
-    """A host-side FAILED result over n variables (x all NaN): what a loop records where
-    there is no usable solution, e.g. for a refused measurement."""
+def failed(n: int, status: int = SolveStatus.NUMERICAL) -> SolveResult:
+    """A host-side FAILED result: what a loop records where there is no usable solution,
+    e.g. for a refused measurement.
+
+    Args:
+        n: the number of variables.
+        status: the SolveStatus code to record (default NUMERICAL).
+
+    Returns:
+        A SolveResult with x all NaN, fallback FALLBACK_FAILED, NaN residuals and no
+        iterations.
+    """
     nan = float("nan")
     return SolveResult(x=np.full(n, np.nan), status=SolveStatus(int(status)),
                        fallback=FALLBACK_FAILED, relaxed_status=NOT_ATTEMPTED, iterations=0,
@@ -77,8 +96,15 @@ def failed(n: int, status=SolveStatus.NUMERICAL) -> SolveResult:
                        polished=False, polish_iterations=0)
 
 
-def fallback_name(code) -> str:
-    """"none" | "relaxed" | "failed" of a fallback code (one QP)."""
+def fallback_name(code: int) -> str:
+    """The name of a fallback code (one QP).
+
+    Args:
+        code: FALLBACK_NONE, FALLBACK_RELAXED or FALLBACK_FAILED (any integer type).
+
+    Returns:
+        "none", "relaxed" or "failed".
+    """
     return FALLBACK_NAMES[int(code)]
 
 

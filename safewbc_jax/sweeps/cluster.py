@@ -22,6 +22,8 @@ import socket
 from pathlib import Path
 import warnings
 
+from safewbc_jax.sweeps.pool import Job
+
 RETRIES = 2            # runs of a chunk's task after its worker died
 CONNECT_TIMEOUT_S = 5.0
 LOCAL = "local"        # --ray with no address: a Ray instance on this machine
@@ -136,16 +138,16 @@ def _resources(engine: str) -> dict:
 _LANES: dict = {}       # (run, lockstep) -> pool.Lanes: compiled once per worker process
 
 
-def run_chunk(job: dict, params, push, perturb_v) -> dict:
+def run_chunk(job: Job, params, push, perturb_v) -> dict:
     """One chunk in this process: the metric columns of its rollouts (``run_sweep``'s
-    executor contract). ``job``: engine, run (``RunSpec``), precision, lockstep, cache_dir."""
+    executor contract). ``job``: ``pool.Job``, its engine the chunk's."""
     from safewbc_jax.base import runtime
 
-    if job["engine"] == "mujoco":
+    if job.engine == "mujoco":
         runtime.use_cpu()
         from safewbc_jax.sweeps import pool
 
-        key = (job["run"], job["lockstep"])
+        key = (job.run, job.lockstep)
         if key not in _LANES:
             _LANES.clear()
             _LANES[key] = pool.Lanes(job)
@@ -153,7 +155,7 @@ def run_chunk(job: dict, params, push, perturb_v) -> dict:
         tasks = pool.chunk_tasks(params, push, perturb_v)
         results: dict = {}
         errors: dict = {}
-        for group in pool.lockstep_groups(len(tasks), job["lockstep"]):
+        for group in pool.lockstep_groups(len(tasks), job.lockstep):
             for i, r in zip(group, lanes.run([tasks[i] for i in group])):
                 if r.columns is not None:
                     results[i] = r.columns
@@ -161,11 +163,11 @@ def run_chunk(job: dict, params, push, perturb_v) -> dict:
                     errors[i] = r.error
         return pool.columns(lanes.dtypes, len(tasks), results, errors)
     runtime.enable_x64()
-    if job.get("cache_dir"):
-        runtime.use_compile_cache(job["cache_dir"])
+    if job.cache_dir:
+        runtime.use_compile_cache(job.cache_dir)
     from safewbc_jax.sim.mjx.rollout import BatchConfig, run_batch
 
-    return run_batch(BatchConfig.of(job["run"], precision=job["precision"]), params, push,
+    return run_batch(BatchConfig.of(job.run, precision=job.precision), params, push,
                      perturb_v)[0]
 
 
@@ -208,8 +210,7 @@ class RayExecutor:
         self.engine = engine
         self.pads = engine == "mjx"          # one compiled batch shape; the pool needs none
         self.lockstep = lockstep
-        self.job = dict(engine=engine, run=spec.run, precision=spec.precision,
-                        lockstep=lockstep, cache_dir=cache_dir)
+        self.job = Job(spec.run, lockstep, cache_dir, engine, spec.precision)
 
     def describe(self) -> str:
         r = _ray().cluster_resources()

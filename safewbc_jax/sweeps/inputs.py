@@ -5,9 +5,11 @@ chunking, the batch size, the engine or the number of devices."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from safewbc_jax.sim.push import Push
+from safewbc_jax.control.push import Push
 from safewbc_jax.sweeps.spec import SweepSpec
 
 
@@ -57,7 +59,7 @@ def pushes(spec: SweepSpec, values: np.ndarray) -> tuple[Push, dict]:
     ``Push`` every engine takes; its table columns: magnitude, direction in degrees, at,
     duration, and the force vector fx, fy, fz)."""
     b = values.shape[0]
-    out = {k: np.full(b, float(v)) for k, v in spec.push.items()}
+    out = {k: np.full(b, float(v)) for k, v in dataclasses.asdict(spec.push).items()}
     for j, a in enumerate(spec.axes):
         if a.kind == "push":
             out[a.target] = np.asarray(values[:, j], float)
@@ -80,10 +82,10 @@ def velocity_std(spec: SweepSpec, sim_model) -> np.ndarray:
         adr = int(sim_model.jnt_dofadr[j])
         t = int(sim_model.jnt_type[j])
         if t == mujoco.mjtJoint.mjJNT_FREE:
-            std[adr:adr + 3] = spec.perturb["base_linear"]
-            std[adr + 3:adr + 6] = spec.perturb["base_angular"]
+            std[adr:adr + 3] = spec.perturb.base_linear
+            std[adr + 3:adr + 6] = spec.perturb.base_angular
         elif t == mujoco.mjtJoint.mjJNT_HINGE:
-            std[adr] = spec.perturb["joints"]
+            std[adr] = spec.perturb.joints
     return std
 
 

@@ -30,12 +30,26 @@ import os
 import signal
 import time
 import traceback
+from typing import Any, NamedTuple
 
 import numpy as np
 
 ENGINES = ("auto", "mjx", "mujoco")
 LOCKSTEP = 16                 # rollouts a worker runs side by side (sim.lockstep)
 START_TIMEOUT_S = 1800.0      # a worker's import, compile and warm-up
+
+
+class Job(NamedTuple):
+    """What a worker process (a pool's, or a Ray task's) needs to roll out a sweep's
+    chunks: the sweep's ``run`` (``SweepSpec.run``, a ``runspec.RunSpec``), the lockstep
+    width, JAX's compilation cache folder (None: none), the engine, and the mjx engine's
+    precision (``BatchConfig.precision``). Pickled to each worker."""
+
+    run: Any
+    lockstep: int
+    cache_dir: str | None = None
+    engine: str = "mujoco"
+    precision: str = "float64"
 
 
 def lockstep_width(batch) -> int:
@@ -83,32 +97,31 @@ def _die_with_parent(parent_pid: int):
 class Lanes:
     """One process's deployment loops of a sweep's run: the scenario's controller compiled
     once (``Controller.start`` and ``Lockstep.warm_up``), then any number of lockstep
-    groups. ``job``: the sweep's run (``SweepSpec.run``, a ``runspec.RunSpec``, the one the
-    mjx engine's ``BatchConfig`` holds), cache_dir and lockstep (the width of
-    ``sim.lockstep.Lockstep``). Start JAX on the CPU (``safewbc_jax.use_cpu``) first."""
+    groups. ``job``: its run, cache_dir and lockstep (the width of ``sim.lockstep.Lockstep``).
+    Start JAX on the CPU (``safewbc_jax.use_cpu``) first."""
 
-    def __init__(self, job: dict):
+    def __init__(self, job: Job):
         from safewbc_jax.base import runtime
 
         runtime.enable_x64()
-        if job.get("cache_dir"):
-            runtime.use_compile_cache(job["cache_dir"])
+        if job.cache_dir:
+            runtime.use_compile_cache(job.cache_dir)
         from safewbc_jax.control import metrics
         from safewbc_jax.sim.lockstep import Lockstep
         from safewbc_jax.sim.mujoco_loop import SimRobot
 
-        run = job["run"]
+        run = job.run
         self.dt = run.control_dt
         self.n_steps, _, _ = run.schedule()
         ctl = run.controller()
         sim = SimRobot(ctl.motors.names, self.dt)
         sim.reset()
         ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), warm_up=False)
-        self.lock = Lockstep(ctl, sim, job["lockstep"])
+        self.lock = Lockstep(ctl, sim, job.lockstep)
         self.lock.warm_up()
-        gait0 = ctl.state.gait if ctl.walking else None
         template = metrics.table_columns(
-            metrics.finalize(ctl.tally.acc, metrics.plant_init(), False, gait0), -1, self.dt)
+            metrics.finalize(ctl.scenario, ctl.tally.acc, metrics.plant_init(), False,
+                             ctl.state.gait), -1, self.dt)
         self.dtypes = {k: np.asarray(v).dtype.str for k, v in template.items()}
 
     def run(self, tasks: list) -> list:
@@ -133,7 +146,7 @@ def chunk_tasks(params, push, perturb_v) -> list:
     import jax
 
     from safewbc_jax.sim.lockstep import RolloutTask
-    from safewbc_jax.sim.push import Push
+    from safewbc_jax.control.push import Push
 
     perturb_v = np.asarray(perturb_v, float)
     leaves = jax.tree_util.tree_map(np.asarray, params)
@@ -162,7 +175,7 @@ def columns(dtypes: dict, m: int, results: dict, errors: dict) -> dict:
     return cols
 
 
-def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
+def _worker(conn, job: Job, cpu: int | None, parent_pid: int):
     """A worker process (module docstring): ``Lanes`` of ``job``, then groups from
     ``conn`` until it sends None."""
     _die_with_parent(parent_pid)
@@ -192,14 +205,14 @@ def _worker(conn, job: dict, cpu: int | None, parent_pid: int):
 class _Slot:
     """One worker process and what it is doing."""
 
-    def __init__(self, ctx, job, cpu):
+    def __init__(self, ctx, job: Job, cpu: int | None):
         self.cpu = cpu
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_worker, args=(child, job, cpu, os.getpid()),
                                 daemon=True)
         self.proc.start()
         child.close()
-        self.task = None           # rollout index in flight
+        self.task: int | None = None    # group index in flight
         self.since = time.monotonic()
 
     def kill(self):
@@ -247,13 +260,12 @@ class PoolExecutor:
         self.restarts = 0
 
     # --- workers
-    def _job(self) -> dict:
-        s = self.spec
+    def _job(self) -> Job:
         if self.cache_dir is None:
             import jax
 
             self.cache_dir = getattr(jax.config, "jax_compilation_cache_dir", None)
-        return dict(run=s.run, cache_dir=self.cache_dir, lockstep=self.lockstep)
+        return Job(self.spec.run, self.lockstep, self.cache_dir)
 
     def _spawn(self, cpu) -> _Slot:
         import multiprocessing as mp

@@ -27,7 +27,7 @@ from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.stats import wilson_interval
 
 
-def load(out) -> tuple[dict, dict]:
+def load(out) -> tuple[table_mod.Manifest, dict]:
     """(manifest, columns) of a sweep directory; TableError when nothing finished yet."""
     man = table_mod.read_manifest(out)
     cols = table_mod.read_columns(out)
@@ -36,20 +36,20 @@ def load(out) -> tuple[dict, dict]:
     return man, cols
 
 
-def outcome(man: dict, cols: dict) -> dict:
+def outcome(man: table_mod.Manifest, cols: dict) -> dict:
     """Per-rollout booleans: violated (target barrier), fell, unsafe (either), and the
     tracking objective (sum of the objective's tracking RMS)."""
     n = len(cols["rollout"])
-    target = man.get("target")
-    tol = float(man.get("violation_tol", 0.0))
+    target = man.target
+    tol = float(man.violation_tol)
     hmin = cols.get(f"barrier_min.{target}") if target else None
     if hmin is None:
         hmin = np.full(n, np.nan)
     fell = np.asarray(cols.get("fell", np.zeros(n, bool)), bool)
     violated = np.asarray(hmin < -tol) & ~np.isnan(hmin)
-    weights = (man.get("objective_weights")
-               or dict.fromkeys(man.get("objective") or [f"tracking_rms.{o}"
-                                                         for o in man.get("outputs", [])], 1.0))
+    weights = (man.objective_weights
+               or dict.fromkeys(man.objective or [f"tracking_rms.{o}" for o in man.outputs],
+                                1.0))
     weights = {c: w for c, w in weights.items() if c in cols}
     obj_names = list(weights)
     objective = weighted_objective(cols, weights) if weights else np.full(n, np.nan)
@@ -57,8 +57,8 @@ def outcome(man: dict, cols: dict) -> dict:
             "objective": objective, "objective_names": obj_names}
 
 
-def _term(man: dict, name: str) -> str:
-    w = (man.get("objective_weights") or {}).get(name, 1.0)
+def _term(man: table_mod.Manifest, name: str) -> str:
+    w = man.objective_weights.get(name, 1.0)
     return name if w == 1.0 else f"{w:g} {name}"
 
 
@@ -72,9 +72,9 @@ def weighted_objective(cols: dict, weights: dict) -> np.ndarray:
     return total
 
 
-def axis_kinds(man: dict) -> tuple[list, list]:
+def axis_kinds(man: table_mod.Manifest) -> tuple[list, list]:
     """(controller axes, push axes) among the swept axes."""
-    axes = man.get("axes", [])
+    axes = list(man.axes)
     push = [a for a in axes if a.startswith("push.")]
     return [a for a in axes if a not in push], push
 
@@ -113,7 +113,7 @@ def group_stats(oc: dict, inv: np.ndarray, g: int) -> dict:
 
 
 def _pole_columns(man, cols):
-    t = man.get("target")
+    t = man.target
     if not t:
         return []
     names = sorted(c for c in cols if c.startswith(f"poles.{t}.p"))
@@ -129,7 +129,7 @@ def poles_figure(man, cols, oc, path) -> bool:
     if not pc:
         return False
     plt = pyplot()
-    t = man["target"]
+    t = man.target
     if len(pc) == 1:
         uniq, inv = group(cols, pc)
         st = group_stats(oc, inv, len(uniq))
@@ -175,8 +175,8 @@ def poles_figure(man, cols, oc, path) -> bool:
             axis.set(xlabel=b, ylabel=a)
         ax[0].set_title(f"worst-case min h_{t} over rollouts (mm)")
         ax[1].set_title("violation rate (count / rollouts; falls noted)")
-    tol_mm = 1e3 * float(man.get("violation_tol", 0))
-    fig.suptitle(f"{man['scenario']}: barrier {t}, violation when min h < -{tol_mm:g} mm")
+    tol_mm = 1e3 * float(man.violation_tol)
+    fig.suptitle(f"{man.scenario}: barrier {t}, violation when min h < -{tol_mm:g} mm")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -201,7 +201,7 @@ def push_figure(man, cols, oc, path) -> bool:
         ix = np.searchsorted(mags, cols["push.magnitude"])
         st = group_stats(oc, ix, len(mags))
         ax[0].errorbar(mags, st["rate"], yerr=_err(st["rate"], st["lo"], st["hi"]), fmt="o-",
-                       capsize=3, label=f"violation of {man.get('target')}")
+                       capsize=3, label=f"violation of {man.target}")
         fr = st["falls"] / np.maximum(st["n"], 1)
         flo, fhi = wilson_interval(st["falls"], st["n"])
         ax[0].errorbar(mags, fr, yerr=_err(fr, flo, fhi), fmt="x--", capsize=3, label="fall")
@@ -223,7 +223,7 @@ def push_figure(man, cols, oc, path) -> bool:
         ax[1].legend(fontsize=8)
     else:
         ax[1].set_visible(False)
-    fig.suptitle(f"{man['scenario']}: pushes on the torso")
+    fig.suptitle(f"{man.scenario}: pushes on the torso")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -231,7 +231,7 @@ def push_figure(man, cols, oc, path) -> bool:
 
 
 def tracking_figure(man, cols, oc, path) -> bool:
-    outs = [o for o in man.get("outputs", []) if f"tracking_rms.{o}" in cols
+    outs = [o for o in man.outputs if f"tracking_rms.{o}" in cols
             and np.any(np.isfinite(np.asarray(cols[f"tracking_rms.{o}"], float)))]
     if not outs or not np.any(np.isfinite(oc["hmin"])):
         return False
@@ -252,8 +252,8 @@ def tracking_figure(man, cols, oc, path) -> bool:
                 ym = np.array([np.nanmean(y[inv == j]) for j in range(len(uniq))])
             axis.scatter(hm * 1e3, ym, s=40, facecolors="none", edgecolors="k",
                          label="setting mean")
-        axis.axvline(-1e3 * float(man.get("violation_tol", 0.0)), color="k", lw=0.8)
-        axis.set(xlabel=f"safety margin min h_{man.get('target')} (mm)",
+        axis.axvline(-1e3 * float(man.violation_tol), color="k", lw=0.8)
+        axis.set(xlabel=f"safety margin min h_{man.target} (mm)",
                  ylabel=f"tracking RMS {o}", title=o)
         axis.legend(fontsize=7)
     fig.tight_layout()
@@ -297,19 +297,20 @@ def _rate(k, n, lo, hi):
     return f"{k}/{n} = {k / max(n, 1):.3f} [{lo:.3f}, {hi:.3f}]"
 
 
-def summary(man, cols, oc, figures, top: int = 5) -> str:
+def summary(man: table_mod.Manifest, cols: dict, oc: dict, figures: list, out: Path,
+            top: int = 5) -> str:
     n = len(cols["rollout"])
-    done = len(table_mod.finished_chunks(Path(man["_dir"])))
-    lines = [f"# Sweep report: {man['scenario']}", ""]
-    lines += [f"- spec: `{man.get('spec_path')}` (fingerprint {man['fingerprint']}), seed "
-              f"{man['seed']}, batch {man['batch']}",
-              f"- rollouts in the table: {n} of {man['n_rollouts']} "
-              f"({done}/{man['n_chunks']} chunks)"
-              + ("" if n == man["n_rollouts"] else " -- **partial**: rerun the sweep to finish"),
-              f"- swept axes: {', '.join(man.get('axes', [])) or 'none'}",
-              f"- target barrier: `{man.get('target')}`; a rollout violates it when min h < "
-              f"-{man.get('violation_tol', 0.0)}; barriers enforced: "
-              f"{', '.join(man.get('barriers', [])) or 'none'}",
+    done = len(table_mod.finished_chunks(Path(out)))
+    lines = [f"# Sweep report: {man.scenario}", ""]
+    lines += [f"- spec: `{man.spec_path}` (fingerprint {man.fingerprint}), seed "
+              f"{man.seed}, batch {man.batch}",
+              f"- rollouts in the table: {n} of {man.n_rollouts} "
+              f"({done}/{man.n_chunks} chunks)"
+              + ("" if n == man.n_rollouts else " -- **partial**: rerun the sweep to finish"),
+              f"- swept axes: {', '.join(man.axes) or 'none'}",
+              f"- target barrier: `{man.target}`; a rollout violates it when min h < "
+              f"-{man.violation_tol}; barriers enforced: "
+              f"{', '.join(man.barriers) or 'none'}",
               "- tracking objective: "
               f"{' + '.join(_term(man, c) for c in oc['objective_names']) or 'none'}", ""]
     tot = group_stats(oc, np.zeros(n, int), 1)
@@ -373,14 +374,13 @@ def make_report(out, dest=None) -> dict:
     dest = Path(dest) if dest else out
     dest.mkdir(parents=True, exist_ok=True)
     man, cols = load(out)
-    man["_dir"] = str(out)
     oc = outcome(man, cols)
     figures = []
     for name, fn in (("poles_heatmap.png", poles_figure), ("push_violation.png", push_figure),
                      ("tracking_vs_margin.png", tracking_figure), ("axes.png", axes_figure)):
         if fn(man, cols, oc, dest / name):
             figures.append(name)
-    text = summary(man, cols, oc, figures)
+    text = summary(man, cols, oc, figures, out)
     (dest / "summary.md").write_text(text)
     return {"figures": figures, "summary": str(dest / "summary.md"),
             "rollouts": len(cols["rollout"])}

@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 
 from safewbc_jax.ui.progress import Progress
-from safewbc_jax.sim.push import Push
+from safewbc_jax.control.push import Push
 from safewbc_jax.sweeps import inputs, sizing
 from safewbc_jax.sweeps import table as table_mod
 from safewbc_jax.sweeps.spec import SweepSpec
@@ -136,7 +136,7 @@ class SweepPlan:
     workers: int | None      # the local pool's (None: mjx, or Ray)
     width: int               # the mujoco engine's lockstep width
     chunks: list             # [(start, stop)) of every chunk of the plan
-    manifest: dict
+    manifest: table_mod.Manifest
     base: Any                # preflight's: the fixed params, velocity std, settings
     std: np.ndarray
     settings: np.ndarray
@@ -180,20 +180,18 @@ def _resolve(spec: SweepSpec, out: Path, batch, seed, engine: str, workers, ray,
 
 
 def _manifest(spec: SweepSpec, seed: int, batch: int, n_chunks: int, engine: str,
-              width: int) -> dict:
+              width: int) -> table_mod.Manifest:
     """The folder's plan (``sweep.json``): what a resumed or second host's run must share."""
-    manifest = {"format": 1, "fingerprint": spec.fingerprint(), "seed": seed, "batch": batch,
-                "n_rollouts": spec.n_rollouts, "n_chunks": n_chunks, "scenario": spec.scenario,
-                "spec_path": spec.path, "axes": [a.name for a in spec.axes],
-                "barriers": list(spec.barriers), "monitors": list(spec.monitors),
-                "outputs": list(spec.outputs), "target": spec.target,
-                "violation_tol": spec.violation_tol, "repeats": spec.repeats,
-                "objective": list(spec.tune.get("objective", [])),
-                "objective_weights": dict(spec.tune.get("weights", {})),
-                "safe_sets": list(spec.safe_sets), "engine": engine}
-    if engine == "mujoco":      # rollouts side by side per worker: rounding depends on it
-        manifest["lockstep"] = width
-    return manifest
+    return table_mod.Manifest(
+        fingerprint=spec.fingerprint(), seed=seed, batch=batch, n_rollouts=spec.n_rollouts,
+        n_chunks=n_chunks, scenario=spec.scenario, spec_path=spec.path,
+        axes=tuple(a.name for a in spec.axes), barriers=tuple(spec.barriers),
+        monitors=tuple(spec.monitors), outputs=tuple(spec.outputs), target=spec.target,
+        violation_tol=spec.violation_tol, repeats=spec.repeats,
+        objective=tuple(spec.tune.objective), objective_weights=dict(spec.tune.weights),
+        safe_sets=tuple(spec.safe_sets), engine=engine,
+        # rollouts side by side per worker: rounding depends on it
+        lockstep=width if engine == "mujoco" else None)
 
 
 def plan_sweep(spec: SweepSpec, out, *, batch=None, seed=None, executor=None,
@@ -357,7 +355,7 @@ def _run_chunks(plan: SweepPlan, execute, key, say, progress, quiet, desc,
             cols["chunk"] = np.full(m, k, np.int64)
             table_mod.write_chunk(out, k, cols, {"chunk": k, "start": start, "stop": stop,
                                                 "seed": plan.seed,
-                                                "fingerprint": plan.manifest["fingerprint"]})
+                                                "fingerprint": plan.manifest.fingerprint})
             ran += m
             if progress is None:       # the bar (nothing with quiet)
                 bar.update(m, "rolling out")

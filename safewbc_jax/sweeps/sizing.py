@@ -14,8 +14,8 @@ def resumed_batch(out) -> int | None:
     """The batch of the sweep begun in ``out`` (its manifest's), or None."""
     if (Path(out) / table_mod.MANIFEST).exists():
         try:
-            return int(table_mod.read_manifest(out)["batch"])
-        except (KeyError, ValueError, table_mod.TableError):
+            return int(table_mod.read_manifest(out).batch)
+        except (TypeError, ValueError):       # TableError is a ValueError
             pass
     return None
 

@@ -71,22 +71,17 @@ from typing import Any
 import numpy as np
 
 from safewbc_jax.base import userfile
-from safewbc_jax.sim.push import PUSH_AT, PUSH_FOR
+from safewbc_jax.control.push import PUSH_AT, PUSH_FOR
 
 SECTIONS = ("sweep", "params", "grid", "push", "perturb", "tune")
 SWEEP_KEYS = {"scenario": str, "barrier": bool, "duration": float, "settle": float,
               "control_dt": float, "repeats": int, "seed": int, "batch": int,
               "violation_tol": float, "target": str, "description": str, "safe_sets": list,
               "precision": str}
-PUSH_KEYS = ("magnitude", "direction", "at", "duration")
-PUSH_DEFAULTS = {"magnitude": 0.0, "direction": 0.0, "at": PUSH_AT, "duration": PUSH_FOR}
-PERTURB_KEYS = ("base_linear", "base_angular", "joints")
 TUNE_KEYS = {"rounds": int, "points": int, "shrink": float, "pole_min": float,
              "pole_max": float, "objective": list, "barrier": str, "equal_poles": bool,
              "method": str, "params": dict, "population": int, "sigma": float, "budget": int,
              "validate": int}
-TUNE_DEFAULTS = {"rounds": 3, "points": 4, "shrink": 0.5, "pole_min": 0.5, "pole_max": 200.0,
-                 "equal_poles": False, "method": "cmaes", "sigma": 0.3, "validate": 64}
 TUNE_METHODS = ("cmaes", "grid")
 PARAM_KEYS = ("bounds", "scale", "start")
 GAIN_TABLES = ("kp", "kd", "weight")
@@ -114,6 +109,45 @@ class Axis:
 
 
 @dataclasses.dataclass(frozen=True)
+class PushTable:
+    """The spec's ``[push]``: the push on the torso of every rollout (the values not swept).
+    ``direction`` in degrees in the ground plane (0: +x), ``at`` in seconds after the
+    motion starts, ``duration`` in seconds. A key the spec leaves out is the scenario's
+    own push's (``Scenario.push``, ``of_push``), or no push."""
+
+    magnitude: float = 0.0
+    direction: float = 0.0
+    at: float = PUSH_AT
+    duration: float = PUSH_FOR
+
+    @classmethod
+    def of_push(cls, push) -> PushTable:
+        """A scenario's ``Push`` as the table's values; ValueError for a push with a
+        vertical force (the table's push lies in the ground plane)."""
+        fx, fy, fz = (float(f) for f in push.force)
+        if fz != 0.0:
+            raise ValueError(f"the scenario's push {push.force} has a vertical force; a "
+                             "sweep's [push] lies in the ground plane")
+        return cls(float(np.hypot(fx, fy)), float(np.degrees(np.arctan2(fy, fx)) % 360.0),
+                   float(push.at), float(push.duration))
+
+
+@dataclasses.dataclass(frozen=True)
+class PerturbTable:
+    """The spec's ``[perturb]``: standard deviations of the Gaussian initial velocity
+    perturbation (base linear m/s, base angular rad/s, each hinge joint rad/s)."""
+
+    base_linear: float = 0.0
+    base_angular: float = 0.0
+    joints: float = 0.0
+
+
+PUSH_KEYS = tuple(f.name for f in dataclasses.fields(PushTable))
+PUSH_DEFAULTS = dataclasses.asdict(PushTable())
+PERTURB_KEYS = tuple(f.name for f in dataclasses.fields(PerturbTable))
+
+
+@dataclasses.dataclass(frozen=True)
 class SweepSpec:
     path: str
     scenario: str
@@ -127,11 +161,11 @@ class SweepSpec:
     violation_tol: float
     target: str | None          # barrier the report and tuning look at (None: no barrier)
     description: str
-    params: dict                 # fixed overrides (params TOML form)
+    params: dict[str, Any]       # fixed overrides (params TOML form)
     axes: tuple                  # of Axis, in file order (the first varies slowest)
-    push: dict                   # fixed push values (those not swept)
-    perturb: dict
-    tune: dict
+    push: PushTable              # fixed push values (those not swept)
+    perturb: PerturbTable
+    tune: TuneTable
     barriers: tuple              # enforced barrier names of the scenario
     monitors: tuple
     outputs: tuple               # output names of the scenario
@@ -301,7 +335,8 @@ def _scenario_info(src, name, safe_sets=()):
     params = sc.default_params()
     return (tuple(b.name for b in sc.barriers), tuple(b.name for b in sc.monitors),
             tuple(o.name for o in sc.outputs),
-            {k: int(np.size(v)) for k, v in params.poles.items()}, params)
+            {k: int(np.size(v)) for k, v in params.poles.items()}, params,
+            PushTable() if sc.push is None else PushTable.of_push(sc.push))
 
 
 _POLE_RE = re.compile(r"^p([1-9][0-9]*)$")
@@ -409,7 +444,8 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
     if userfile.is_ref(scenario):          # FILE from the spec's folder
         scenario = userfile.absolute(scenario, _spec_folder(src), "scenario")
     safe_sets = _safe_set_refs(src, sw["safe_sets"]) if "safe_sets" in sw else ()
-    barriers, monitors, outputs, pole_counts, defaults = _scenario_info(src, scenario, safe_sets)
+    barriers, monitors, outputs, pole_counts, defaults, push0 = _scenario_info(src, scenario,
+                                                                              safe_sets)
     num = lambda k, **kw: _number(src, f"sweep.{k}", sw[k], **kw) if k in sw else None  # noqa: E731
     duration = num("duration", positive=True)
     settle = num("settle", positive=True)
@@ -462,7 +498,7 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
                                 f"{sorted(kinds & clash)}; sweep one of them")
 
     push_tab = _table(src, data, "push")
-    push = dict(PUSH_DEFAULTS)
+    push: dict[str, float] = {}
     for k, v in push_tab.items():
         if k not in PUSH_KEYS:
             raise SpecError(f"{src}: unknown key push.{k} = {_fmt(v)}; "
@@ -473,8 +509,12 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
         push[k] = _number(src, f"push.{k}", v)
         _check_push_values(src, f"push.{k}", k, [push[k]])
 
+    # a swept key's fixed value is unused: the table's default (the fingerprint of a spec
+    # does not change with the scenario's own push)
+    swept_push = {a.target: getattr(PushTable(), a.target) for a in axes if a.kind == "push"}
+
     pert_tab = _table(src, data, "perturb")
-    perturb = {k: 0.0 for k in PERTURB_KEYS}
+    perturb: dict[str, float] = {}
     for k, v in pert_tab.items():
         if k not in PERTURB_KEYS:
             raise SpecError(f"{src}: unknown key perturb.{k} = {_fmt(v)}; known: "
@@ -487,9 +527,13 @@ def parse_spec(data: dict, src: str = "spec") -> SweepSpec:
                      settle=settle, control_dt=control_dt, repeats=repeats, seed=seed,
                      batch=batch, violation_tol=tol, target=target,
                      description=sw.get("description", ""), params=params, axes=axes,
-                     push=push, perturb=perturb, tune=tune, barriers=tuple(enforced),
+                     push=dataclasses.replace(push0, **swept_push, **push),
+                     perturb=PerturbTable(**perturb),
+                     tune=tune,
+                     barriers=tuple(enforced),
                      monitors=tuple(monitors) + (() if barrier_on else tuple(barriers)),
-                     outputs=outputs, pole_counts=pole_counts, safe_sets=safe_sets, precision=prec)
+                     outputs=outputs, pole_counts=pole_counts, safe_sets=safe_sets,
+                     precision=prec)
     if spec.n_rollouts > MAX_ROLLOUTS:
         raise SpecError(f"{src}: the grid times sweep.repeats gives {spec.n_rollouts} rollouts "
                         f"(more than {MAX_ROLLOUTS}); shrink the grid")
@@ -528,6 +572,31 @@ class TuneParam:
         if self.scale == "log":
             return (np.log(v) - np.log(self.lo)) / (np.log(self.hi) - np.log(self.lo))
         return (v - self.lo) / (self.hi - self.lo)
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneTable:
+    """The spec's ``[tune]``, checked, with its defaults. ``objective``: the metric names,
+    ``weights``: {metric: weight} (tune.objective as a table, or 1.0 each); ``barrier``:
+    the barrier whose poles tune-poles tunes (None: none enforced); ``params``: the tuned
+    parameters (empty: the tune-poles preset); ``population`` and ``budget`` None: the
+    tuner's defaults."""
+
+    objective: tuple[str, ...]
+    weights: dict[str, float]
+    barrier: str | None = None
+    method: str = "cmaes"
+    params: tuple[TuneParam, ...] = ()
+    rounds: int = 3
+    points: int = 4
+    shrink: float = 0.5
+    pole_min: float = 0.5
+    pole_max: float = 200.0
+    equal_poles: bool = False
+    population: int | None = None
+    sigma: float = 0.3
+    budget: int | None = None
+    validate: int = 64
 
 
 def _parse_objective(src, v, outputs) -> dict:
@@ -599,18 +668,17 @@ def _parse_tune_param(src, key, value, info, axes, defaults) -> TuneParam:
     return TuneParam(axis, lo, hi, scale, start)
 
 
-def _parse_tune(src, tab, info, axes, target, defaults) -> dict:
+def _parse_tune(src, tab, info, axes, target, defaults) -> TuneTable:
     """The [tune] table of ``safewbc tune`` (and its ``tune-poles`` preset), every key
     checked here, before anything compiles."""
     barriers, monitors, outputs, pole_counts = info
-    tune: dict[str, Any] = dict(TUNE_DEFAULTS)
+    tune: dict[str, Any] = {}
     for k, v in tab.items():
         if k not in TUNE_KEYS:
             raise SpecError(f"{src}: unknown key tune.{k} = {_fmt(v)}; "
                             f"known: {', '.join(TUNE_KEYS)}")
         if k == "objective":
             tune["weights"] = _parse_objective(src, v, outputs)
-            tune[k] = list(tune["weights"])
         elif k == "barrier":
             if not isinstance(v, str) or v not in barriers:
                 raise SpecError(f"{src}: tune.barrier = {_fmt(v)}: not an enforced barrier of "
@@ -642,17 +710,16 @@ def _parse_tune(src, tab, info, axes, target, defaults) -> dict:
                                 "candidates a generation")
         else:
             tune[k] = _number(src, f"tune.{k}", v, positive=True)
-    if not 0 < tune["shrink"] < 1:
-        raise SpecError(f"{src}: tune.shrink = {tune['shrink']!r}: must be between 0 and 1")
-    if not 0 < tune["sigma"] <= 1:
-        raise SpecError(f"{src}: tune.sigma = {tune['sigma']!r}: the initial step as a "
+    weights = tune.pop("weights", None) or {f"tracking_rms.{o}": 1.0 for o in outputs}
+    tune.setdefault("barrier", target if target in barriers else None)
+    t = TuneTable(objective=tuple(weights), weights=weights, **tune)
+    if not 0 < t.shrink < 1:
+        raise SpecError(f"{src}: tune.shrink = {t.shrink!r}: must be between 0 and 1")
+    if not 0 < t.sigma <= 1:
+        raise SpecError(f"{src}: tune.sigma = {t.sigma!r}: the initial step as a "
                         "fraction of each parameter's range (log range on a log scale) must be "
                         "in (0, 1]")
-    if tune["pole_min"] >= tune["pole_max"]:
-        raise SpecError(f"{src}: tune.pole_min = {tune['pole_min']!r} must be below "
-                        f"tune.pole_max = {tune['pole_max']!r}")
-    if "weights" not in tune:
-        tune["weights"] = {f"tracking_rms.{o}": 1.0 for o in outputs}
-        tune["objective"] = list(tune["weights"])
-    tune.setdefault("barrier", target if target in barriers else None)
-    return tune
+    if t.pole_min >= t.pole_max:
+        raise SpecError(f"{src}: tune.pole_min = {t.pole_min!r} must be below "
+                        f"tune.pole_max = {t.pole_max!r}")
+    return t

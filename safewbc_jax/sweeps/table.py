@@ -2,7 +2,7 @@
 
 Layout of DIR::
 
-    DIR/sweep.json                 manifest: spec fingerprint, seed, batch, chunk count
+    DIR/sweep.json                 manifest (``Manifest``): spec fingerprint, seed, batch, chunks
     DIR/spec.toml                  the spec as given
     DIR/chunks/chunk-000000.parquet  one file per finished chunk (rows: rollouts)
     DIR/chunks/...
@@ -16,10 +16,12 @@ which readers ignore and the next run removes. Reading the table is reading ever
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +32,90 @@ _CHUNK_RE = re.compile(r"^chunk-(\d{6,})\.parquet$")
 
 class TableError(ValueError):
     """A sweep directory does not hold what was asked of it."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Manifest:
+    """A sweep folder's plan (``sweep.json``): what a resumed or second host's run must
+    share, and what ``report`` reads. The fields are the file's keys, in its order;
+    ``objective_weights``, ``safe_sets`` and ``engine`` take their defaults in folders
+    begun before them, ``lockstep`` (the mujoco engine's only) 1 in a mujoco folder begun
+    before the lockstep."""
+
+    format: int = 1
+    fingerprint: str
+    seed: int
+    batch: int
+    n_rollouts: int
+    n_chunks: int
+    scenario: str
+    spec_path: str
+    axes: tuple[str, ...]
+    barriers: tuple[str, ...]
+    monitors: tuple[str, ...]
+    outputs: tuple[str, ...]
+    target: str | None
+    violation_tol: float
+    repeats: int
+    objective: tuple[str, ...]
+    objective_weights: dict[str, float] = dataclasses.field(default_factory=dict)
+    safe_sets: tuple[str, ...] = ()
+    engine: str = "mjx"
+    lockstep: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The file's JSON object (``lockstep`` only where it is set)."""
+        d: dict[str, Any] = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "lockstep" and v is None:
+                continue
+            d[f.name] = (list(v) if isinstance(v, tuple) else dict(v) if isinstance(v, dict)
+                         else v)
+        return d
+
+    def to_json(self) -> str:
+        """The text of ``sweep.json``."""
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_json(cls, data: str | dict, source: str = "manifest") -> Manifest:
+        """A manifest from the text of ``sweep.json`` or its parsed object; TableError
+        naming ``source`` and the key for a missing, unknown or ill-typed key."""
+        if isinstance(data, str):
+            try:
+                data = json.loads(data)
+            except json.JSONDecodeError as e:
+                raise TableError(f"{source}: unreadable manifest ({e})") from None
+        if not isinstance(data, dict):
+            raise TableError(f"{source}: a manifest is a JSON object, got "
+                             f"{type(data).__name__}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = [k for k in data if k not in fields]
+        if unknown:
+            raise TableError(f"{source}: unknown manifest key {unknown[0]!r}; a manifest has "
+                             f"{', '.join(fields)}")
+        required = [k for k, f in fields.items() if f.default is dataclasses.MISSING
+                    and f.default_factory is dataclasses.MISSING]
+        missing = [k for k in required if k not in data]
+        if missing:
+            raise TableError(f"{source}: the manifest has no key {missing[0]!r}")
+        kw: dict[str, Any] = {}
+        for k, v in data.items():
+            if k in _MANIFEST_LISTS:
+                if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+                    raise TableError(f"{source}: manifest key {k!r} = {v!r}: expected a list "
+                                     "of strings")
+                v = tuple(v)
+            elif k == "objective_weights" and not isinstance(v, dict):
+                raise TableError(f"{source}: manifest key {k!r} = {v!r}: expected an object")
+            kw[k] = v
+        if kw.get("engine") == "mujoco" and "lockstep" not in kw:
+            kw["lockstep"] = 1      # a mujoco table from before sim.lockstep: one at a time
+        return cls(**kw)
+
+
+_MANIFEST_LISTS = ("axes", "barriers", "monitors", "outputs", "objective", "safe_sets")
 
 
 def chunk_path(out: Path, k: int) -> Path:
@@ -68,41 +154,38 @@ def remove_partial(out: Path, chunks=None) -> list[str]:
     return gone
 
 
-def open_manifest(out: Path, manifest: dict, spec_text: str | None = None) -> dict:
+def open_manifest(out: Path, manifest: Manifest, spec_text: str | None = None) -> Manifest:
     """Create DIR/sweep.json exclusively, or check that the existing one describes the same
     sweep (spec fingerprint, seed, batch, plan, engine); raises TableError naming what
     differs. The manifest is never overwritten: several hosts (``--hosts``) share one
     folder, and a plan written by one is the plan of all of them, also before any chunk of
-    it has finished."""
+    it has finished. Returns the folder's manifest."""
     out = Path(out)
     path = out / MANIFEST
     if not path.exists() and out.exists() and any(out.iterdir()) and not (out / CHUNKS).exists():
         raise TableError(f"{out} exists and is not a sweep directory; use another --out")
     (out / CHUNKS).mkdir(parents=True, exist_ok=True)
-    if _create_exclusive(path, json.dumps(manifest, indent=2)):
+    if _create_exclusive(path, manifest.to_json()):
         if spec_text is not None:
             _atomic_write_text(out / "spec.toml", spec_text)
         return manifest
     try:
-        old = json.loads(path.read_text())
+        data = json.loads(path.read_text())
     except json.JSONDecodeError as e:
         raise TableError(f"{path}: unreadable manifest ({e}); remove {out} or use another "
                          "--out") from None
-    # a table from before the engines was written by the mjx engine
-    old, new = {"engine": "mjx", **old}, {"engine": "mjx", **manifest}
-    for m in (old, new):   # a mujoco table from before sim.lockstep ran one at a time
-        if m["engine"] == "mujoco":
-            m.setdefault("lockstep", 1)
+    old = Manifest.from_json(data, str(path))
     empty = ("" if finished_chunks(out) else
              f"; no chunk of it has finished: removing {out} loses nothing")
     for key, what in (("fingerprint", "a different spec"), ("seed", "another --seed"),
                       ("batch", "another --batch"), ("n_rollouts", "a different plan"),
                       ("engine", "another --engine"),
                       ("lockstep", "another lockstep width: another version of the engine")):
-        if old.get(key) != new.get(key):
+        was, now = getattr(old, key), getattr(manifest, key)
+        if was != now:
             raise TableError(
-                f"{out} holds a sweep with {key} = {old.get(key)!r}, this one has "
-                f"{new.get(key)!r} ({what}); resume with the same spec, --seed, --batch and "
+                f"{out} holds a sweep with {key} = {was!r}, this one has "
+                f"{now!r} ({what}); resume with the same spec, --seed, --batch and "
                 f"--engine, or write to another --out{empty}")
     return old
 
@@ -133,12 +216,14 @@ def _writer_id() -> str:
     return f"{socket.gethostname()}-{os.getpid()}"
 
 
-def read_manifest(out: Path) -> dict:
+def read_manifest(out: Path) -> Manifest:
+    """The manifest of sweep directory ``out``; TableError when it has none or it does not
+    read as one."""
     path = Path(out) / MANIFEST
     if not path.is_file():
         raise TableError(f"{out} is not a sweep directory (no {MANIFEST}); run safewbc sweep "
                          "first")
-    return json.loads(path.read_text())
+    return Manifest.from_json(path.read_text(), str(path))
 
 
 def _atomic_write_text(path: Path, text: str):

@@ -113,48 +113,48 @@ def config(spec: SweepSpec, *, method=None, budget=None, validate=None,
     ``validate`` from the command line when given; ``params`` (TuneParam tuple) replaces
     ``tune.params`` (the tune-poles preset). SpecError names what is wrong."""
     t = spec.tune
-    params = params if params is not None else t.get("params") or poles_preset(spec)
-    method = method or t["method"]
+    params = params if params is not None else t.params or poles_preset(spec)
+    method = method or t.method
     if method not in spec_mod.TUNE_METHODS:
         raise SpecError(f"--method {method!r}: one of {', '.join(spec_mod.TUNE_METHODS)}")
     n_dist = len(distribution(spec, params)[1]) * spec.repeats
     d = len(params)
     if method == "grid":
-        per_gen = t["points"] ** d
-        default_budget = t["rounds"] * per_gen * n_dist
+        per_gen = t.points ** d
+        default_budget = t.rounds * per_gen * n_dist
     else:
-        per_gen = t.get("population") or 4 + int(np.floor(3 * np.log(d)))
+        per_gen = t.population or 4 + int(np.floor(3 * np.log(d)))
         default_budget = 10 * per_gen * n_dist
     if budget is None:
-        budget = t.get("budget", default_budget)
+        budget = default_budget if t.budget is None else t.budget
     if budget < per_gen * n_dist:
         raise SpecError(f"{spec.path}: a budget of {budget} rollouts is less than one "
                         f"generation ({per_gen} candidates x {n_dist} rollouts of the "
                         "distribution); raise --budget (tune.budget)")
-    validate = t["validate"] if validate is None else int(validate)
+    validate = t.validate if validate is None else int(validate)
     if validate < 0:
         raise SpecError(f"--validate {validate}: expected >= 0")
-    return TuneConfig(tuple(params), dict(t["weights"]), method, int(budget), validate,
-                      t.get("population"), t["sigma"], t["rounds"], t["points"], t["shrink"])
+    return TuneConfig(tuple(params), dict(t.weights), method, int(budget), validate,
+                      t.population, t.sigma, t.rounds, t.points, t.shrink)
 
 
 def poles_preset(spec: SweepSpec) -> tuple:
     """The poles of ``tune.barrier`` as tuned parameters (log scale): the box
     [pole_min, pole_max], narrowed by the spec's pole axes of that barrier; with
     ``equal_poles``, one parameter ``poles.B`` over the intersection of the boxes."""
-    name = spec.tune.get("barrier")
+    name = spec.tune.barrier
     if not spec.barrier or not name or name not in spec.barriers:
         raise SpecError(f"{spec.path}: nothing to tune: give tune.params, or an enforced "
                         f"barrier whose poles to tune (sweep.barrier = true and tune.barrier "
                         f"one of {list(spec.barriers) or 'none'})")
     r = spec.pole_counts[name]
-    lo = np.full(r, spec.tune["pole_min"])
-    hi = np.full(r, spec.tune["pole_max"])
+    lo = np.full(r, spec.tune.pole_min)
+    hi = np.full(r, spec.tune.pole_max)
     for a in spec.axes:
         if a.target == name and a.kind in ("poles", "pole"):
             for i in (range(r) if a.kind == "poles" else [a.index]):
                 lo[i], hi[i] = max(min(a.values), lo[i]), min(max(a.values), hi[i])
-    if spec.tune.get("equal_poles"):
+    if spec.tune.equal_poles:
         a, b = float(np.max(lo)), float(np.min(hi))
         return (TuneParam(Axis(f"poles.{name}", "poles", name, (a, b)), a, max(b, a * 1.0001),
                           "log"),)

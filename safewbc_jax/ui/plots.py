@@ -110,19 +110,20 @@ def walking_figures(log: dict, run: dict, out_dir: Path, window: float = 2.5) ->
         fig.savefig(f, dpi=110)
         plt.close(fig)
         files.append(f)
-    if log.get("alip") is not None and log["alip"].ndim == 2 and log["alip"].shape[1] >= 11:
-        a = log["alip"]
+    diag = log.get("gait_diagnostics")
+    if diag is not None and diag.ndim == 2 and diag.shape[1] >= 11:      # the ALIP gait's
         fig, axes = plt.subplots(3, 1, figsize=(8, 6.2), sharex=True)
         for i, axis in enumerate("xy"):
             ax = axes[i]
-            ax.plot(t[walk], a[walk, 2 + i], color="tab:blue", lw=1.1, label="L about stance foot")
-            ax.plot(t[walk], a[walk, 9 + i], color="tab:orange", lw=1.0,
+            ax.plot(t[walk], diag[walk, 2 + i], color="tab:blue", lw=1.1,
+                    label="L about stance foot")
+            ax.plot(t[walk], diag[walk, 9 + i], color="tab:orange", lw=1.0,
                     label="predicted at end of step")
             ax.set_ylabel(f"L^alip_{axis} (kg m2/s)", fontsize=8)
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=8)
-        axes[2].plot(t[walk], a[walk, 5], lw=1.0, label="u_x")
-        axes[2].plot(t[walk], a[walk, 6], lw=1.0, label="u_y")
+        axes[2].plot(t[walk], diag[walk, 5], lw=1.0, label="u_x")
+        axes[2].plot(t[walk], diag[walk, 6], lw=1.0, label="u_y")
         axes[2].set_ylabel("planned step (m)", fontsize=8)
         axes[2].legend(fontsize=8)
         axes[2].grid(alpha=0.3)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,10 +35,24 @@ BATCHED_SCENARIOS = tuple(SCENARIOS) + WALKING   # squat, bow, arms, walk, push
 
 @dataclasses.dataclass(frozen=True)
 class BatchConfig(RunSpec):
-    """What every rollout of a batch shares: the run (``runspec.RunSpec``: scenario,
-    barrier, durations, control period, speed, the user's safe sets) and the batch's own
-    options (static: one compile per config and batch size, durations aside).
-    ``decimate`` k > 0 keeps every k-th control step's trajectory."""
+    """What every rollout of a batch shares: the run (``runspec.RunSpec``) and the batch's
+    own options (static: one compile per config and batch size, durations aside).
+
+    Checked when a batch runs (``plant``), not when it is built.
+
+    Args:
+        scenario: "squat", "bow", "arms", "walk", "push", a user's "FILE.py:NAME", or a
+            ``Scenario`` object.
+        barrier: False: every safe set monitored only.
+        duration: s of motion; None: the scenario's default.
+        settle: s of standing before it; None: the scenario's default.
+        control_dt: the control period, s, a multiple of the simulation step.
+        speed: walking: the commanded mean forward speed, m/s.
+        safe_sets: the user's safe sets, "FILE.py:NAME" references (``safesets.load``).
+        decimate: k > 0 keeps every k-th control step's trajectory; 0: none.
+        precision: "float64", or "mixed" (MJX physics and the QP's interior point in
+            float32; ``safewbc_jax/control/precision.py``).
+    """
 
     decimate: int = 0
     precision: str = "float64"        # "float64" or "mixed" (safewbc_jax/control/precision.py)
@@ -82,8 +97,18 @@ class Plant:
     contact_rows: np.ndarray  # (ncon, 4) efc rows of each MJX contact's pyramid, -1 padded
 
     def schedule(self, cfg: BatchConfig) -> tuple[int, float]:
-        """(control steps, settle seconds) of a config (run-time values: configs that
-        differ only in duration and settle share one compiled function)."""
+        """The run-time values of a config (configs that differ only in duration and
+        settle share one compiled function).
+
+        Args:
+            cfg: a config of this plant's scenario.
+
+        Returns:
+            ``(control steps, settle seconds)``.
+
+        Raises:
+            BatchError: a duration or settle out of range.
+        """
         return _schedule(self.scenario, cfg)
 
 
@@ -133,7 +158,19 @@ def _contact_rows(mjx, ms) -> np.ndarray:
 
 
 def plant(cfg: BatchConfig) -> Plant:
-    """The host-side constants of a config (validated first)."""
+    """The host-side constants of a config, validated first; cached per scenario, barrier,
+    control period, safe sets (by their files' contents) and precision.
+
+    Args:
+        cfg: the batch's config.
+
+    Returns:
+        Its plant.
+
+    Raises:
+        BatchError: a scenario not available in the batched path, a bad field of ``cfg``,
+            or a user's file (scenario or safe set) that cannot be used.
+    """
     _check_config(cfg)
     try:
         sc = get_scenario(cfg.scenario, cfg.barrier, cfg.safe_sets)
@@ -194,8 +231,22 @@ def _plant(scenario, barrier: bool, control_dt: float, safe_sets: tuple = (),
         contact_rows=_contact_rows(mjx, ms))
 
 
-def default_params(scenario, batch: int, safe_sets=()) -> ControllerParams:
-    """The scenario's default ControllerParams (with the user's ``safe_sets``, as in
-    ``BatchConfig``) with a leading batch axis on every leaf."""
+def default_params(scenario: str | Scenario, batch: int,
+                   safe_sets: Sequence[str] = ()) -> ControllerParams:
+    """The scenario's default ControllerParams with a leading batch axis on every leaf.
+
+    Args:
+        scenario: a scenario's name, a user's "FILE.py:NAME", or a ``Scenario``.
+        batch: the batch size B.
+        safe_sets: the user's safe sets, as in ``BatchConfig``.
+
+    Returns:
+        The params, each leaf broadcast to (B,) + its shape.
+
+    Raises:
+        ValueError: an unknown scenario, or a safe set that cannot be used
+            (``SafeSetError``).
+        RuntimeError: JAX's 64-bit floats are off.
+    """
     p = get_scenario(scenario, True, safe_sets).default_params()
     return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (batch,) + a.shape), p)

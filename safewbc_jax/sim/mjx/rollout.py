@@ -37,6 +37,7 @@ controller state and the metrics stay float64 in either mode.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -52,7 +53,7 @@ from safewbc_jax.control.step import Measurement
 from safewbc_jax.sim.mjx.imports import import_mjx
 from safewbc_jax.model.modelinfo import loop_residual
 from safewbc_jax.control.params import ControllerParams
-from safewbc_jax.sim.push import Push, force_at
+from safewbc_jax.control.push import Push, force_at
 from safewbc_jax.solvers import jax_qp
 
 
@@ -103,15 +104,36 @@ def _start_velocities(pl: Plant, perturb_v) -> np.ndarray:
     return np.asarray(perturb_v)[:, pl.qvel_idx] + pl.v0
 
 
-def start_etas(pl: Plant, name: str, perturb_v, thresholds) -> np.ndarray:
-    """(N, r) eta(x_0) of barrier ``name`` at N start states: the stand pose with the
-    simulator velocity perturbations ``perturb_v`` (N, nv_sim) and thresholds (N,)."""
+def start_etas(pl: Plant, name: str, perturb_v: np.ndarray,
+               thresholds: np.ndarray) -> np.ndarray:
+    """eta(x_0) of a barrier at N start states: the stand pose with simulator velocity
+    perturbations.
+
+    Args:
+        pl: the plant (``plant``).
+        name: the barrier's name.
+        perturb_v: (N, nv_sim) velocity perturbations of the simulator state.
+        thresholds: (N,) the barrier's threshold at each.
+
+    Returns:
+        (N, r) eta(x_0), r the barrier's relative degree.
+    """
     return _start_check(pl).etas(name, _start_velocities(pl, perturb_v), thresholds)
 
 
-def check_batch_poles(pl: Plant, params, perturb_v) -> None:
+def check_batch_poles(pl: Plant, params: ControllerParams, perturb_v: np.ndarray) -> None:
     """Theorem 1 for every rollout at its own start state (velocity perturbation and
-    threshold included), before anything long compiles: PoleError names the rollout."""
+    threshold included), before anything long compiles.
+
+    Args:
+        pl: the plant (``plant``).
+        params: the batch's params, a leading batch axis B on every leaf.
+        perturb_v: (B, nv_sim) velocity perturbations of the simulator state.
+
+    Raises:
+        PoleError: a rollout's poles do not keep its barrier's h >= 0 from its start
+            state; the message names the rollout.
+    """
     _start_check(pl).check(params, _start_velocities(pl, perturb_v), batched=True)
 
 
@@ -142,6 +164,7 @@ def _sense(pl: Plant, dx, t):
     """MJX Data -> (Measurement, whether a leg touches the other leg)."""
     ft = jnp.float64                  # the controller's dtype, whatever the physics'
     q, v = dx.qpos[pl.qpos_idx].astype(ft), dx.qvel[pl.qvel_idx].astype(ft)
+    soles: Any                        # traced: a jax array where Measurement says numpy
     if pl.walking:
         soles, legs = sole_forces_and_leg_contact(pl, dx)
         soles = soles.astype(ft)
@@ -174,11 +197,20 @@ def _pair(g, a, b):
             | (member(g[:, 0], b) & member(g[:, 1], a)))
 
 
-def sole_forces_and_leg_contact(pl: Plant, dx):
-    """((2,) normal force of the left and the right sole on the floor (N), whether a
-    geom of one leg touches one of the other leg), from MJX's contacts: the normal force
-    of a pyramidal contact is the sum of its 2 (condim - 1) edge forces, as
-    ``mj_contactForce`` computes it (the deployment loop's ``ContactSensing``)."""
+def sole_forces_and_leg_contact(pl: Plant, dx: Any) -> tuple[jax.Array, jax.Array]:
+    """The soles' normal forces and the legs' contact, from MJX's contacts.
+
+    The normal force of a pyramidal contact is the sum of its 2 (condim - 1) edge forces,
+    as ``mj_contactForce`` computes it (as the deployment loop's ``ContactSensing``).
+
+    Args:
+        pl: the plant (``plant``).
+        dx: one rollout's ``mjx.Data`` after a physics step.
+
+    Returns:
+        ``(soles, legs)``: (2,) normal force of the left and the right sole on the floor,
+            N, and whether a geom of one leg touches one of the other leg.
+    """
     con = dx._impl.contact
     rows = np.asarray(pl.contact_rows)
     f = dx._impl.efc_force[np.maximum(rows, 0)] * (rows >= 0)
@@ -304,9 +336,17 @@ CPU_CHUNK = 64
 
 
 def default_chunk(backend: str | None = None, n_devices: int | None = None) -> int | None:
-    """``run_batch``'s default ``chunk``: ``CPU_CHUNK`` on the CPU backend with one local
-    device; None (one vmap over each device's share) on an accelerator, whose parallelism
-    wants the widest batch, and wherever the batch is sharded over several devices."""
+    """``run_batch``'s default ``chunk`` on a platform.
+
+    Args:
+        backend: JAX's backend name ("cpu", "gpu", ...); None: this process's default.
+        n_devices: the number of local devices; None: this process's.
+
+    Returns:
+        ``CPU_CHUNK`` on the CPU backend with one local device; None (one vmap over each
+        device's share) on an accelerator, whose parallelism wants the widest batch, and
+        wherever the batch is sharded over several devices.
+    """
     backend = jax.default_backend() if backend is None else backend
     n_devices = len(jax.local_devices()) if n_devices is None else n_devices
     return CPU_CHUNK if backend == "cpu" and n_devices == 1 else None
@@ -339,12 +379,27 @@ def _checked_batch(batch) -> int:
     return int(batch)
 
 
-def export(cfg: BatchConfig, batch: int, platforms=("cuda",), chunk="auto"):
-    """The batched closed loop of ``cfg`` (the function ``run_batch`` compiles, without
-    trajectories) at ``batch`` rollouts, lowered by ``jax.export`` for ``platforms``: no
-    device of that platform is needed and nothing compiles. ``.mlir_module()`` of the
-    answer is the program that platform would run (its custom calls, batch shapes,
-    loops); ``chunk`` as in ``run_batch`` on one device."""
+def export(cfg: BatchConfig, batch: int, platforms: Sequence[str] = ("cuda",),
+           chunk: int | str | None = "auto") -> jax.export.Exported:
+    """The batched closed loop of a config (the function ``run_batch`` compiles, without
+    trajectories), lowered by ``jax.export``: no device of the platforms is needed and
+    nothing compiles.
+
+    Args:
+        cfg: the batch's config.
+        batch: the number of rollouts.
+        platforms: JAX platform names to lower for ("cuda", "cpu", "rocm", ...).
+        chunk: as in ``run_batch`` on one device ("auto": the chunk each platform's
+            program gets).
+
+    Returns:
+        The ``jax.export.Exported``; its ``.mlir_module()`` is the program the platform
+        would run (its custom calls, batch shapes, loops).
+
+    Raises:
+        BatchError: a bad config or ``batch``.
+        ValueError: a bad ``chunk``.
+    """
     pl = plant(cfg)
     batch = _checked_batch(batch)
     ch = resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
@@ -353,10 +408,22 @@ def export(cfg: BatchConfig, batch: int, platforms=("cuda",), chunk="auto"):
 
 
 def compiled_text(cfg: BatchConfig, batch: int) -> str:
-    """The optimised HLO text of the closed loop that ``run_batch`` compiles for ``batch``
-    rollouts (no trajectories, the default chunk) on this process's devices: the program
-    each device runs, with its loops and any collective. A compile, or a load from JAX's
-    persistent compilation cache where ``run_batch`` already compiled it."""
+    """The optimised HLO text of the closed loop that ``run_batch`` compiles (no
+    trajectories, the default chunk) on this process's devices.
+
+    A compile, or a load from JAX's persistent compilation cache where ``run_batch``
+    already compiled it.
+
+    Args:
+        cfg: the batch's config.
+        batch: the number of rollouts.
+
+    Returns:
+        The program each device runs, with its loops and any collective.
+
+    Raises:
+        BatchError: a bad config or ``batch``.
+    """
     pl = plant(cfg)
     batch = _checked_batch(batch)
     ndev = len(jax.local_devices())
@@ -371,10 +438,22 @@ def compiled_text(cfg: BatchConfig, batch: int) -> str:
     return _compiled(pl, 0, 0, ch, ndev).lower(*shapes).compile().as_text()
 
 
-def memory_bytes(cfg: BatchConfig, batch: int, chunk=None) -> int:
-    """Bytes the closed loop of ``cfg`` at ``batch`` rollouts takes on the default device,
-    from the compiled program's memory analysis (arguments + outputs + temporaries; a
-    compile, minutes on a small CPU). ``chunk`` None: one vmap, the accelerator form."""
+def memory_bytes(cfg: BatchConfig, batch: int, chunk: int | str | None = None) -> int:
+    """Bytes the closed loop of a config takes on the default device, from the compiled
+    program's memory analysis (a compile).
+
+    Args:
+        cfg: the batch's config.
+        batch: the number of rollouts.
+        chunk: as in ``run_batch``; None (default): one vmap, the accelerator form.
+
+    Returns:
+        Arguments + outputs + temporaries, less what the outputs alias, bytes.
+
+    Raises:
+        BatchError: a bad config or ``batch``.
+        ValueError: a bad ``chunk``.
+    """
     pl = plant(cfg)
     batch = _checked_batch(batch)
     ch = resolve_chunk(chunk, batch, ByPlatform(CPU_CHUNK))
@@ -396,14 +475,36 @@ def memory_bytes(cfg: BatchConfig, batch: int, chunk=None) -> int:
 
 def largest_batch(fixed: float, per_rollout: float, memory: float,
                   headroom: float = 0.9) -> int:
-    """The most rollouts whose ``fixed + batch * per_rollout`` bytes fit in ``headroom``
-    of ``memory`` bytes (0 when not even one fits)."""
+    """The most rollouts whose ``fixed + batch * per_rollout`` bytes fit in a share of a
+    device's memory.
+
+    Args:
+        fixed: bytes that do not depend on the batch (``memory_model``).
+        per_rollout: bytes per rollout (``memory_model``).
+        memory: the device's memory, bytes.
+        headroom: the share of ``memory`` to fill.
+
+    Returns:
+        The batch size; 0 when not even one rollout fits.
+    """
     return max(0, int((headroom * memory - fixed) // max(per_rollout, 1.0)))
 
 
-def memory_model(cfg: BatchConfig, batches=(256, 1024)) -> tuple[float, float]:
-    """(fixed bytes, bytes per rollout) of the closed loop of ``cfg`` in its one-vmap
-    (accelerator) form, from ``memory_bytes`` at two batch sizes on the default device."""
+def memory_model(cfg: BatchConfig,
+                 batches: tuple[int, int] = (256, 1024)) -> tuple[float, float]:
+    """The closed loop's memory as a linear function of the batch size, in its one-vmap
+    (accelerator) form on the default device.
+
+    Args:
+        cfg: the batch's config.
+        batches: the two batch sizes ``memory_bytes`` is measured at (two compiles).
+
+    Returns:
+        ``(fixed bytes, bytes per rollout)``.
+
+    Raises:
+        BatchError: a bad config or batch size.
+    """
     b0, b1 = (int(b) for b in batches)
     m0, m1 = memory_bytes(cfg, b0), memory_bytes(cfg, b1)
     per = (m1 - m0) / (b1 - b0)
@@ -413,8 +514,8 @@ def memory_model(cfg: BatchConfig, batches=(256, 1024)) -> tuple[float, float]:
 def _finish(pl: Plant, final: Carry) -> dict:
     """The final Carry (batched, numpy) -> flat metric columns, names as in metrics.json
     (``metrics.table_columns``)."""
-    out = metrics.finalize(final.tally.acc, final.plant, ~final.alive,
-                           final.ctl.gait if pl.walking else None)
+    out = metrics.finalize(pl.scenario, final.tally.acc, final.plant, ~final.alive,
+                           final.ctl.gait)
     return metrics.table_columns(out, np.where(final.alive, -1, final.fell_step),
                                  pl.cfg.control_dt)
 
@@ -442,33 +543,50 @@ def _shard(tree):
 
 
 def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = None,
-              perturb_v=None, chunk: int | str | None = "auto"):
+              perturb_v: np.ndarray | None = None, chunk: int | str | None = "auto",
+              ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
     """Run a batch of closed-loop rollouts.
 
-    params: the scenario's ControllerParams with a leading batch axis B on every leaf
-    (``default_params(scenario, B)``); push: ``Push`` (None: no push); perturb_v: (B, nv)
-    initial velocity perturbation of the simulator state (None: zeros).
-
-    Returns (metrics, trajectories): metrics a dict of numpy arrays of shape (B,), named as
-    in ``metrics.json`` with nested names flattened by "." (``tracking_rms.com``,
-    ``barrier_min.left_fist``), plus ``fell_time_s``; trajectories None, or with
-    ``cfg.decimate`` = k a dict of arrays (B, T, ...) of every k-th control step (tau,
-    alive, qpos, u, status, fallback, qp_iterations, stance, y_<output>, yd_<output>,
-    h_<barrier>). Walking adds avg_forward_speed, steps_taken, leg_collisions,
-    leg_contact_steps, swing_clearance_min and missed_touchdowns.
-
-    chunk: run the batch ``chunk`` rollouts at a time, one chunk after the other inside
-    the one compiled call (``chunking.chunked``; the results do not depend on it); None:
-    one vmap over the whole batch; "auto" (default): with one device, ``CPU_CHUNK`` when
-    the program is lowered for a CPU and one vmap when it is lowered for an accelerator
-    (``chunking.ByPlatform``, the choice ``default_chunk`` reports); on several devices
-    None (each device runs one vmap over its share; a chunk given there is not used). A different
-    chunk is a different compile.
-
     Why chunks on a CPU: one vmap over a large batch is slower per robot-step (its working
-    set leaves the caches, and its solver loops run until the batch's slowest QP stops).
-    Small chunks lose too; 64 is the default (benchmarks/README.md, "Figures behind design choices",
-    ``benchmarks/closed_loop_batch.py --chunks``)."""
+    set leaves the caches, and its solver loops run until the batch's slowest QP stops);
+    small chunks lose too (benchmarks/README.md, "Figures behind design choices",
+    ``benchmarks/closed_loop_batch.py --chunks``).
+
+    Args:
+        cfg: what every rollout shares (scenario, durations, ...).
+        params: the scenario's ControllerParams with a leading batch axis B on every leaf
+            (``default_params(scenario, B)``).
+        push: a ``Push`` per rollout, (B,)-batched fields; None: the scenario's own push
+            (``Scenario.push``) on every rollout, or none.
+        perturb_v: (B, nv_sim) initial velocity perturbation of the simulator state;
+            None: zeros.
+        chunk: run the batch ``chunk`` rollouts at a time, one chunk after the other
+            inside the one compiled call (``chunking.chunked``; the results do not depend
+            on it); None: one vmap over the whole batch; "auto" (default): with one
+            device, ``CPU_CHUNK`` when the program is lowered for a CPU and one vmap when
+            it is lowered for an accelerator (``chunking.ByPlatform``, the choice
+            ``default_chunk`` reports); on several devices None (each device runs one
+            vmap over its share; a chunk given there is not used). A different chunk is
+            a different compile.
+
+    Returns:
+        ``(metrics, trajectories)``: metrics a dict of numpy arrays of shape (B,), named
+            as in ``metrics.json`` with nested names flattened by "."
+            (``tracking_rms.com``, ``barrier_min.left_fist``), plus ``fell_time_s``;
+            walking adds avg_forward_speed, steps_taken, leg_collisions,
+            leg_contact_steps, swing_clearance_min and missed_touchdowns. trajectories
+            None, or with ``cfg.decimate`` = k a dict of arrays (B, T, ...) of every k-th
+            control step (tau, alive, qpos, u, status, fallback, qp_iterations, stance,
+            ``y_<output>``, ``yd_<output>``, ``h_<barrier>``).
+
+    Raises:
+        BatchError: a bad config, chunk, or input (params not of the scenario's
+            structure, shapes or batch sizes that do not match, non-finite pushes or
+            perturbations, a negative push duration, an empty batch), before anything
+            compiles.
+        PoleError: with ``cfg.barrier``, a rollout whose poles fail Theorem 1 at its
+            start state.
+    """
     pl = plant(cfg)
     try:
         check_chunk(chunk)
@@ -477,7 +595,11 @@ def run_batch(cfg: BatchConfig, params: ControllerParams, push: Push | None = No
     if push is None or perturb_v is None:
         leaves = jax.tree_util.tree_leaves(params)
         b = np.shape(leaves[0])[0] if leaves and np.ndim(leaves[0]) else 0
-        push = Push.none(b) if push is None else push
+        if push is None:       # the scenario's own push on every rollout, or none
+            own = pl.scenario.push
+            push = Push.none(b) if own is None else Push(
+                np.tile(np.asarray(own.force, float), (b, 1)), np.full(b, float(own.at)),
+                np.full(b, float(own.duration)))
         perturb_v = np.zeros((b, pl.nv_sim)) if perturb_v is None else perturb_v
     push = Push(*(np.asarray(a, float) for a in push))
     perturb_v = np.asarray(perturb_v, float)
