@@ -4,9 +4,8 @@ one jitted call (``lax.map`` over the batch reshaped to (n_chunks, size, ...)).
 Why: on a CPU, one ``vmap`` over a large batch is slower per instance than the same work
 in smaller pieces. Its working set outgrows the caches, and a vmapped loop runs until the
 slowest instance of its whole batch stops, while a chunk stops at its own slowest. The
-batched QP solver (``solvers.jax_qp.solve_batch``) and the closed-loop rollouts
-(``batch.rollout.run_batch``) both use this; their docstrings give the measurements behind
-their default chunk sizes. On an accelerator the widest vmap is what fills the device, so
+measurements behind the default chunk sizes: benchmarks/README.md, "Figures behind design
+choices". On an accelerator the widest vmap is what fills the device, so
 the defaults are ``ByPlatform`` chunks: chunked on the CPU, one vmap elsewhere, decided by
 the platform the program is lowered for rather than by the machine that traces it.
 
@@ -76,9 +75,9 @@ def chunked(impl, chunk: int | None):
     """``impl(batched, *shared)`` (a function of a pytree with a leading batch axis on every
     leaf, and of arguments shared by the whole batch) run on the batch in chunks of at most
     ``chunk`` instances; None: ``impl`` itself; a ``ByPlatform``: by the platform lowered
-    for. To be traced inside ``jit``. A batch of at most ``chunk`` is one chunk; callers
-    that want it to be ``impl`` itself (the same compiled function as no chunking) pass
-    ``resolve_chunk``'s answer."""
+    for. To be traced inside ``jit``. A batch of at most ``chunk`` is one chunk; for ``impl``
+    itself there (the same compiled function as no chunking), pass ``resolve_chunk``'s
+    answer."""
     if chunk is None:
         return impl
     if isinstance(chunk, ByPlatform):

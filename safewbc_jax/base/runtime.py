@@ -83,9 +83,8 @@ def use_cpu() -> None:
     """Run this process's JAX on the CPU (``jax_platforms = "cpu"``), whatever accelerator
     and JAX plugin the machine has.
 
-    The single robot's step (``safewbc run``, a deployed controller) and the mujoco
-    engine's sweep workers are CPU programs, and a CUDA backend would also take most of a
-    GPU's memory in each of those processes. JAX reads the setting when it starts a
+    In a CPU program a CUDA backend would still take most of a GPU's memory in each
+    process. JAX reads the setting when it starts a
     backend: call this before the process's first JAX array or compile. Where the backend
     is already up on the CPU, it does nothing.
 

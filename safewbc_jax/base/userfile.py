@@ -67,7 +67,6 @@ def absolute(ref: str, base: Path, what: str, error=ValueError) -> str:
 
 
 def digest(ref: str, what: str = "file", error=ValueError) -> str:
-    """sha256 of the file a reference names (a sweep records it: a resumed table must come
-    from the same file)."""
+    """sha256 of the file a reference names."""
     path, _ = split(ref, what, error)
     return hashlib.sha256(path.read_bytes()).hexdigest()

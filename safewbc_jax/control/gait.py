@@ -15,7 +15,7 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 
 class Support(NamedTuple):
-    """Which feet carry the robot, as the plant metrics read it: ``stance`` +1 left, -1
+    """Which feet carry the robot: ``stance`` +1 left, -1
     right, 0 both feet; ``stance0`` (3,) where the stance sole stood when the step began
     (zeros in double support)."""
 
@@ -25,8 +25,8 @@ class Support(NamedTuple):
 
 @runtime_checkable
 class Gait(Protocol):
-    """The methods ``control.step.prepare`` and ``conclude`` call, and those of the start
-    (``start_data``, ``Scenario.theorem_domain``). Every method but ``check_speed``,
+    """The protocol of a scenario's gait: its per-step methods and those of the start
+    (``start_data``, the start domains). Every method but ``check_speed``,
     ``columns`` and the start domains is pure JAX of its array arguments."""
 
     def check_speed(self, speed: float, option: str = "speed") -> float:

@@ -1,18 +1,16 @@
-"""The run metrics, defined once: init / accumulate / finalize, for every loop.
+"""The run metrics, defined once: init / accumulate / finalize.
 
 Two accumulators, written for numpy or jax.numpy (``xp``) so that the same function runs
-inside the batched scan and, per step, in the single-robot loops:
+traced in JAX or, per step, in numpy:
 
-* ``ControlAcc``: what the controller sees (``control_step.conclude`` accumulates it):
-  QP outcomes, refused measurements, tracking, barrier minima, ZMP margin, torque ratio,
-  the equality residual, walking's forward speed;
-* ``PlantAcc``: what a simulator measures of the robot (each simulator loop accumulates
-  it from its own sensing): foot slip, loop-closure residual, leg-on-leg contacts, the
-  swing clearance, the fall.
+* ``ControlAcc``: what the controller sees: QP outcomes, refused measurements, tracking,
+  barrier minima, ZMP margin, torque ratio, the equality residual, walking's forward speed;
+* ``PlantAcc``: what a simulator measures of the robot, from its own sensing: foot slip,
+  loop-closure residual, leg-on-leg contacts, the swing clearance, the fall.
 
 ``finalize`` turns both into the flat metric columns (names of ``metrics.json``, nested
 names joined by "."; arrays with a leading batch axis come out as arrays), and
-``summarize`` into the nested ``metrics.json`` of ``safewbc run``.
+``summarize`` into the nested ``metrics.json`` of one run.
 """
 
 from __future__ import annotations
@@ -160,7 +158,7 @@ def plant_accumulate(acc: PlantAcc, live, rec, soles, soles0_xy, loop_residual, 
     ``rec`` (the step's StepRecord) gives the domain: in single support the slip is the
     stance sole's, from where its step began; the swing clearance (left sole y minus
     right sole y) counts in single support during the motion. Every argument may carry
-    the same leading batch axes (``sim.lockstep`` accumulates its lanes in one call)."""
+    the same leading batch axes."""
     single = rec.stance != 0
     stance_xy = xp.where((rec.stance > 0)[..., None], soles[..., 0, :2], soles[..., 1, :2])
     slip = xp.where(single, xp.linalg.norm(stance_xy - rec.stance0[..., :2], axis=-1),
@@ -247,7 +245,7 @@ EXTREMES = ("_max_reached", "_ref_max")
 def table_columns(flat: dict, fell_step, control_dt: float) -> dict:
     """``finalize``'s columns as a sweep table has them (``SINGLE_RUN_ONLY`` left out),
     with ``fell_time_s``: the time of the control step the robot fell at (``fell_step``,
-    -1 where it did not: NaN), for every engine of ``safewbc sweep``."""
+    -1 where it did not: NaN)."""
     out = {k: np.asarray(v) for k, v in flat.items()
            if not (k.startswith(SINGLE_RUN_ONLY) or k.endswith(EXTREMES))}
     fs = np.asarray(fell_step)

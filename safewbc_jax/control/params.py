@@ -231,7 +231,7 @@ def load_overrides(path: str | Path) -> dict[str, Any]:
         path: the file.
 
     Returns:
-        Its tables, for ``apply_overrides``.
+        Its tables.
 
     Raises:
         ParamsError: the file does not exist or is not valid TOML.

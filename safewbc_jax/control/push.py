@@ -1,5 +1,5 @@
-"""A push on the robot's base: the one definition every loop applies (the MuJoCo loop on
-``xfrc_applied`` of the base body, the batched rollouts on MJX's), with its defaults.
+"""A push on the robot's base, defined once (a force on the base body, applied through
+MuJoCo's and MJX's ``xfrc_applied``), with its defaults.
 
 A push is a constant force (world frame, N) on the base body from ``at`` seconds after the
 motion starts (tau = at) for ``duration`` seconds. The default start, 2.55 s, is 0.05 s
@@ -21,8 +21,7 @@ PUSH_FOR = 0.15    # s
 
 
 class Push(NamedTuple):
-    """A push on the base, or one per rollout with a leading batch axis B on every field
-    in the batched path (``run_batch``).
+    """A push on the base, or one per rollout with a leading batch axis B on every field.
 
     Attributes:
         force: (3,) or (B, 3) constant force on the base body, world frame, N.

@@ -25,8 +25,7 @@ A ``SafeSet`` carries everything a scenario needs of one barrier:
   be h's own derivatives: the built-in ones are tested against the AD of h.
 
 A user adds one from their own file: ``load("path/to/file.py:NAME")`` imports the file and
-returns its ``NAME`` (a SafeSet, or a function of no arguments that returns one); the
-CLI's ``--safe-set`` and a sweep spec's ``sweep.safe_sets`` go through it.
+returns its ``NAME`` (a SafeSet, or a function of no arguments that returns one).
 """
 
 from __future__ import annotations

@@ -7,8 +7,7 @@ threshold); nothing else has to be edited to add a task or a safe set
 (``with_safe_sets`` adds them to an existing scenario). A domain-driven scenario
 (walking) also has a ``gait`` (the protocol of ``control.gait``) that advances its domains
 from the measurement; the double-support scenarios have none. A scenario may carry a
-``push`` (``control.push.Push``): every simulator loop applies it (``safewbc run``,
-``run_batch``, the sweeps' default ``[push]``) unless the run gives its own.
+``push`` (``control.push.Push``), applied unless the run gives its own.
 
 Before the motion (tau < 0) the robot stands for ``settle`` seconds while every
 time-based reference is blended from the measured start value to y^d(0) in ``blend``
@@ -43,7 +42,7 @@ class Start:
     read. ``origin`` (3,): the stance frame's origin, the soles' midpoint on the floor
     (z = 0); ``arm0`` (8,): the arm joint angles to hold (``outputs.ARM_JOINTS``); ``y0``:
     {output name: its value at the start}; ``settle``: the seconds of standing before the
-    motion (the run's: ``control_step.prepare`` sets it, None before); ``gait``: a gait's
+    motion (the run's; None until it is set); ``gait``: a gait's
     own start data (``walking.WalkStart``), None without a gait."""
 
     origin: jax.Array

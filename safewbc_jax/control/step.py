@@ -1,5 +1,4 @@
-"""The one control step that every loop calls: the MuJoCo loop, the batched MJX rollouts
-and a real robot (``deploy.Controller``).
+"""The control step: a measurement in, the QP, the torque, the record and the metrics out.
 
     state, prep, qp = prepare(ctx, params, start, run, state, meas)  # measurement -> QP
     sol             = <a QP solver>(qp)                   # jax_qp in JAX, PIQP on the host
@@ -9,10 +8,10 @@ and a real robot (``deploy.Controller``).
 the seam to the solvers, and their answer (``solvers.result.SolveResult``, the same type
 from either solver) comes back to ``conclude``. ``prepare`` carries the ControllerState
 (gait, clock, last good measurement), ``conclude`` the Tally (last good torque, metrics):
-the next ``prepare`` does not wait for ``conclude``. The batched path composes the three in
-one traced step (``step_jax``); the single-robot path jits ``prepare`` and ``conclude``
-apart, runs PIQP between them on the host and ``conclude`` after the command is out.
-Nothing in either loop decides anything about control:
+the next ``prepare`` does not wait for ``conclude``. ``step_jax`` composes the three in one
+traced step; ``prepare`` and ``conclude`` can also be jitted apart, with a host solver
+(PIQP) between them and ``conclude`` run after the command is out. Everything that decides
+about control is here:
 
 * the measurement check (``state_ok``): a refused measurement holds the last good torque,
   does not advance the gait or the clock, and is counted (``bad_measurements``);
@@ -78,8 +77,7 @@ def state_tests(q, v, xp=np):
     """The tests a robot state (q, v) must pass, each True where it does: (finite, the
     base quaternion of unit length within QUAT_TOL, the base speed within MAX_SPEED, every
     angular rate within MAX_RATE); a NaN fails every comparison. Leading axes of q and v
-    are a batch of states (``sim.lockstep`` tests its lanes in one call); the results
-    have those axes. ``deploy.check_state`` names the first that fails."""
+    are a batch of states; the results have those axes."""
     n2 = xp.sum(q[..., 3:7] ** 2, axis=-1)
     return (xp.isfinite(xp.sum(q, axis=-1)) & xp.isfinite(xp.sum(v, axis=-1)),
             xp.abs(xp.sqrt(n2) - 1.0) <= QUAT_TOL,
@@ -121,8 +119,7 @@ class MotorArrays:
 
 def hold_torque(x, usable, last_u, blocks: Blocks, xp=np):
     """The torque to apply: the solution's u (``blocks``: the QP's block sizes, e.g.
-    ``QP.blocks``) where the solve is usable, else the last good u (the policy of every
-    loop)."""
+    ``QP.blocks``) where the solve is usable, else the last good u."""
     return xp.where(usable, blocks.split(x)[1], last_u)
 
 
@@ -147,7 +144,7 @@ class Context:
     @property
     def blocks(self) -> Blocks:
         """The block sizes of the QP's X = [q_ddot, u, lambda], the model's (``qp.assemble``
-        reads the same sizes off the model's B); ``conclude`` splits X with them."""
+        reads the same sizes off the model's B)."""
         return Blocks(self.model.nv, self.model.nu)
 
     def __post_init__(self):
@@ -193,12 +190,11 @@ class RunValues(NamedTuple):
 
 def start_data(model, scenario, q) -> scenario_mod.Start:
     """The references' start data, measured at the start pose q (``scenario.start_state``,
-    the outputs' start values; a gait's own, ``gait.start_data``). The settle time is the
-    run's (``RunValues``), added by ``prepare``.
+    the outputs' start values; a gait's own, ``gait.start_data``). The settle time is not
+    part of it: it is the run's (``RunValues``).
 
-    One jitted call per scenario: op by op, these kinematics cost a fresh process seconds at
-    every plant's and every deployed controller's start (benchmarks/README.md, "Figures
-    behind design choices")."""
+    One jitted call per scenario: op by op, these kinematics cost a fresh process seconds
+    (benchmarks/README.md, "Figures behind design choices")."""
     return _start_data(model, scenario, jnp.asarray(q))
 
 
@@ -382,8 +378,8 @@ def start_eta_fn(model, scenario, barrier, q):
     """(v, threshold) -> eta(x_0) (r,) of ``barrier`` (a SafeSet of ``scenario``) at the
     start state (q, v): the values Theorem 1 (eq. 25) is checked on, in the domain
     ``Scenario.theorem_domain`` gives (a barrier active only in some domains, like the
-    swing-foot barrier, where it first becomes active). Pure JAX in (v, threshold): the
-    batched path vmaps it over the rollouts' start velocities."""
+    swing-foot barrier, where it first becomes active). Pure JAX in (v, threshold), so it
+    vmaps over start velocities."""
     domain = scenario.theorem_domain(model, barrier, q)
 
     def eta(v, threshold):
@@ -395,9 +391,7 @@ def start_eta_fn(model, scenario, barrier, q):
 
 class StartCheck:
     """Theorem 1 (eq. 25) at start states (q, v_i) of ``scenario``, all at one
-    configuration q: the check every driver runs before it compiles or restarts its loop
-    (``deploy.Controller.start`` and ``restart``, ``batch.rollout.run_batch``, the sweeps'
-    ``admissible``). Each barrier's eta(x_0) (``start_eta_fn``) is vmapped over the start
+    configuration q. Each barrier's eta(x_0) (``start_eta_fn``) is vmapped over the start
     velocities and thresholds, and jitted once per barrier where ``jit`` (False: eager,
     for a single check that would not repay a compile)."""
 

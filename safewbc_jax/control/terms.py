@@ -3,9 +3,9 @@
 ``robot_terms`` evaluates everything that depends on the robot (M, h, B, the chain and
 contact Jacobians with their drifts, every output's y^a, J_y, J_y_dot v);
 ``build_qp`` turns them, the references and ``ControllerParams`` into the QP pytree (the
-seam). Both are pure JAX (jit, vmap). The loops call them through
-``control_step.prepare``; the single-robot deployment wrapper (PIQP, the fallback policy,
-the last good torque held) is ``deploy.Controller``.
+seam). Both are pure JAX (jit, vmap). The control step built on them is ``control_step``; the
+deployable controller (PIQP, the fallback policy, the last good torque held) is
+``deploy.Controller``.
 """
 
 from __future__ import annotations

@@ -338,7 +338,7 @@ def make_scenario(name, duration, push=None):
 
 
 # --------------------------------------------------------------------------------------
-# The gait state machine (advanced by control_step.prepare in every loop)
+# The gait state machine
 # --------------------------------------------------------------------------------------
 
 class GaitState(NamedTuple):
@@ -363,7 +363,7 @@ class GaitState(NamedTuple):
 
 def gait_step(g: GaitState, tau, dt, sole_left, sole_right, swing_force, weight, xp=np):
     """One control step of the gait, as a pure function of arrays (``xp`` numpy or
-    jax.numpy; ``control_step.prepare`` runs it in JAX, ``Gait`` with numpy).
+    jax.numpy).
     Returns (new GaitState, True where a new step began).
 
     Walking starts at tau = 0 in left stance. A step ends at touchdown of the swing
@@ -446,8 +446,8 @@ def first_step_domain(model, q, v_des=0.2):
 
 @dataclasses.dataclass
 class Gait:
-    """A host-side (numpy) ``GaitState`` advanced by ``gait_step``, with the commands: for
-    scripts and tests that step the gait by hand. The controller itself carries a
+    """A host-side (numpy) ``GaitState`` advanced by ``gait_step``, with the commands: the
+    gait stepped by hand. The controller itself carries a
     ``GaitState`` in ``control_step.ControllerState`` and advances it in ``prepare``."""
 
     v_des: float = 0.2

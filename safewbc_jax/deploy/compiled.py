@@ -8,11 +8,10 @@ side of a step over explicit per-lane state.
     state, prep, packed = step.prepare(fixed, state, flats[0])
     cmds, sols = step.finish([lane], prep[None], packed[None], reasons, [meas.t], t_in)
 
-One robot (``deploy.Controller``) runs it with one lane; the lockstep lanes of the
-``mujoco`` sweep engine (``sim.lockstep``) run the unjitted functions vmapped and the host
-side for all their lanes at once. A lane's result does not depend on the other lanes. Every
-argument and result of a step is one float64 vector (``packing.FlatTree``), not a pytree of
-some forty arrays.
+One robot is one lane; for several lanes the unjitted functions vmap over the lanes and
+the host side handles all the lanes at once. A lane's result does not depend on the other
+lanes. Every argument and result of a step is one float64 vector (``packing.FlatTree``),
+not a pytree of some forty arrays.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@
     cmd = ctl.step(Measurement(q, v, t, sole_force))   # every control_dt
     send(cmd.motor)                      # motor torques in the robot's motor order
 
-``Controller.step`` runs the control step every loop shares (``control_step``: the gait
+``Controller.step`` runs the control step (``control_step``: the gait
 from the sole forces and the controller's own forward kinematics of q, the rigid
 swing-leg rates, the QP, the held torque, the metrics), with PIQP and its fallback policy
 (``solvers.piqp_path``) as the solver; a failed QP holds the last good torque. A

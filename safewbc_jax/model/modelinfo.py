@@ -70,8 +70,7 @@ def sim_loop_residual(ms, d, pairs=None) -> float:
 
 def loop_residual(site_xpos, pairs, xp=np):
     """``sim_loop_residual`` from the sites' world positions (..., nsite, 3); leading axes
-    are a batch (``sim.lockstep``'s lanes) and stay in the result. ``xp``: numpy (the C
-    MuJoCo loops) or jax.numpy (the MJX rollout)."""
+    are a batch and stay in the result. ``xp``: numpy or jax.numpy."""
     tips, anchors = pairs
     gap = site_xpos[..., tips, :] - site_xpos[..., anchors, :]
     return xp.sqrt((gap * gap).sum(axis=-1).max(axis=-1))

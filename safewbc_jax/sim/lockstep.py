@@ -1,20 +1,19 @@
-"""Several deployment loops in lockstep on one core: the ``mujoco`` sweep engine's worker.
+"""Several deployment loops in lockstep on one core.
 
 One robot's deployment loop (``mujoco_loop.rollout``) pays per control step one call of
 the deployed jitted step, whose cost on a CPU is mostly XLA's per-kernel runtime, not
-arithmetic. A worker that runs ``width`` rollouts side by side pays that runtime once per
+arithmetic. Running ``width`` rollouts side by side pays that runtime once per
 step for all of them: the leader controller's ``CompiledStep`` (its unjitted ``prepare``
 and ``conclude``), vmapped over the lanes. Each lane has its own ``LaneState`` (counters,
 held torque, PIQP solver), its own flat state vectors, and its own ``SimRobot``
 (``SimRobot.sibling``: one MjModel, one MjData per lane).
 
-The loop is the one every C MuJoCo driver runs (``sim.loop.simulate``: measurement ->
-control step -> push -> physics -> plant metrics -> fall test), with the lanes' control
-step ``Lanes``: the measurement checks of all lanes at once (``CompiledStep.admit``), the
-vmapped call, and the host side of the step for all lanes at once
-(``CompiledStep.finish``: the acceptance, X = x0 + N u, the held-torque rule, the motor
-map, the code one robot's step runs with one lane), PIQP still one solve per lane by the
-lane's own solver. A lane whose measurement is refused holds its torque for that step.
+The loop is ``sim.loop.simulate`` (measurement -> control step -> push -> physics -> plant
+metrics -> fall test), with the lanes' control step ``Lanes``: the measurement checks of
+all lanes at once (``CompiledStep.admit``), the vmapped call, and the host side of the
+step for all lanes at once (``CompiledStep.finish``: the acceptance, X = x0 + N u, the
+held-torque rule, the motor map), PIQP still one solve per lane by the lane's own solver.
+A lane whose measurement is refused holds its torque for that step.
 
 One XLA call a step: step k's conclude runs vmapped in the same call as step k+1's prepare
 (the two do not depend on each other; one call costs less than two), so step k's record,
@@ -143,7 +142,7 @@ class Lockstep:
 
 
 class Lanes(LaneControl):
-    """The control step of a ``Lockstep``'s lanes for ``loop.simulate``, one rollout each:
+    """The control step of a ``Lockstep``'s lanes (a ``loop.LaneControl``), one rollout each:
     ``CompiledStep.admit``, the one vmapped call a step (this step's prepare, the last
     step's conclude), ``CompiledStep.finish``. A step's record comes one step later
     (``concluded``); ``drain`` runs the last step's conclude. ``arrays``: each lane's flat

@@ -1,4 +1,4 @@
-"""The one simulation loop of the C MuJoCo drivers, for one robot or several side by side.
+"""The C MuJoCo simulation loop, for one robot or several side by side.
 
 Each control step, for every lane (a robot) still running:
 
@@ -7,9 +7,9 @@ Each control step, for every lane (a robot) still running:
     (``metrics.plant_accumulate``, once the step's record has come) -> the fall test
     (``control_step.fallen``)
 
-The control step is the lanes' business: one deployed ``Controller`` (``mujoco_loop``'s
-``OneRobot``: ``safewbc run``, the deployment loop) or the lanes of one compiled step,
-vmapped (``lockstep.Lanes``: the ``mujoco`` sweep engine). A step's record (the
+The control step is the lanes' business (a ``LaneControl``): one deployed ``Controller``
+(``mujoco_loop.OneRobot``) or the lanes of one compiled step, vmapped (``lockstep.Lanes``).
+A step's record (the
 ``StepRecord`` the plant metrics read the domain from) may come in the same loop iteration
 (one robot) or in the next one (the lockstep concludes step k in the call that prepares
 step k + 1): the loop keeps each step's physics until its record has come, in order. The

@@ -3,8 +3,8 @@ controller (``safewbc_jax.deploy.controller.Controller``), as it would run on th
 
 The loop is ``sim.loop.simulate`` with one lane. Each control step: sense (``SimRobot``:
 MjData -> ``deploy.Measurement``, the controller's (q, v) through the StateMap, the soles'
-normal forces from the contacts) -> ``Controller.step`` (the control step every loop
-shares, ``control_step``; ``OneRobot``) -> the motor torques into d.ctrl -> push
+normal forces from the contacts) -> ``Controller.step`` (the control step,
+``control_step``; ``OneRobot``) -> the motor torques into d.ctrl -> push
 (``push.force_at``) -> the physics advances control_dt -> sense again: the plant metrics
 (``metrics.plant_accumulate``), the fall test (``control_step.fallen``) -> log (``run``).
 A settle period of standing precedes the motion (tau < 0); the paper's tau counts from
@@ -53,7 +53,7 @@ class ContactSensing:
     floor, 4 a leg on the other leg, 0 anything else), one gather for all contacts; then
     a Python loop over the few contacts. Per-contact Python objects or ``np.isin`` cost
     ~50-90 us a step, per-column numpy tests ~18 us, this ~8 us: a measurable part of a
-    sweep worker's step."""
+    loop step."""
 
     LEFT, RIGHT, LEGS = 1, 2, 4
 
@@ -103,8 +103,7 @@ class SimRobot:
     """The simulated robot of the loop (``models/scene.xml`` in C MuJoCo), loaded once and
     reset for each rollout: the state map to the controller, the sensing (sole forces,
     leg-on-leg contact), the motor commands and the push, one control period of physics
-    (``advance``): a lane of ``sim.loop.simulate``. The lanes of ``sim.lockstep`` are
-    ``sibling``s."""
+    (``advance``); ``sibling`` gives another on the same MjModel."""
 
     def __init__(self, motor_names, control_dt: float):
         import mujoco
@@ -143,7 +142,7 @@ class SimRobot:
 
     def sibling(self) -> "SimRobot":
         """Another simulated robot on the same (read-only) MjModel with its own MjData at
-        the stand keyframe: the lanes of ``sim.lockstep`` share one model."""
+        the stand keyframe."""
         import copy
 
         other = copy.copy(self)
@@ -163,7 +162,7 @@ class SimRobot:
 
 
 class OneRobot(LaneControl):
-    """The control step of one robot for ``loop.simulate`` (one lane): ``Controller.step``,
+    """The control step of one robot (a ``LaneControl`` of one lane): ``Controller.step``,
     then ``observer(meas)`` and the step's record (``Controller.record``: its conclude,
     after the command is out). ``last``: (measurement, Command, HostRecord) of the last
     step."""
@@ -190,9 +189,9 @@ def rollout(sim: SimRobot, ctl: Controller, n_steps: int, push: Push | None = No
             on_step=None, observer=None):
     """One rollout of the deployment loop (``loop.simulate`` with one lane) from the
     robot's present state (``sim.reset`` and ``ctl.start``/``ctl.restart`` before).
-    ``observer(meas)`` runs right after each ``Controller.step`` (``run``);
-    ``on_step(k, meas, cmd, record, legs, loop_residual)`` after each step's physics
-    (``run``'s log). Both are outside ``Controller.step``'s timing.
+    ``observer(meas)`` runs right after each ``Controller.step``;
+    ``on_step(k, meas, cmd, record, legs, loop_residual)`` after each step's physics.
+    Both are outside ``Controller.step``'s timing.
     Returns (fell, the step it fell at or -1, plant metrics)."""
     one = OneRobot(ctl, observer)
     log = None
@@ -222,7 +221,7 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
 
     ``observer(meas)``, when given, is called once per control step with the measurement
     the step's command was computed from, after the command is out and outside every
-    timed part (``benchmarks/controller_step.py`` runs TSID there, on the same states).
+    timed part.
 
     The log's ``stance`` and the gait's record fields at step k are those of the domain
     step k's QP ran in (the gait advanced from step k's measurement); with a gait that

@@ -7,12 +7,8 @@ motion (``settle``) and of motion (``duration``; the scenario's defaults where N
 control period and walking's speed command. Each loop adds its own options to it by
 subclassing it:
 
-- ``sim.mujoco_loop.RunConfig``: ``safewbc run``'s MuJoCo loop (a push, QP recording);
-- ``batch.rollout.BatchConfig``: ``run_batch`` (trajectories, precision);
-
-and the sweep spec hands its own (``SweepSpec.run``) to both engines: to ``run_batch``
-for the mjx engine, to each worker of the mujoco engine's pool, which builds its
-controller with ``controller``.
+- ``sim.mujoco_loop.RunConfig``: the MuJoCo loop (a push, QP recording);
+- ``batch.rollout.BatchConfig``: the batched MJX rollouts (trajectories, precision).
 
 What varies from rollout to rollout is not in it: the ``ControllerParams``, the push
 (``push.Push``) and the start perturbation go with each rollout.

@@ -5,16 +5,15 @@ needs ``solve`` alone.
     solve(qp, checks=None) -> SolveResult   the step's reduced QP (float64 numpy); checks:
                                              ``policy.checks`` of that QP, computed in the
                                              jitted step (a solver may use or ignore them)
-    reset()                                  optional: forget set-up state (``Controller.reset``)
+    reset()                                  optional: forget set-up state
     lane() -> solver                         optional: an independent solver of the same
-                                             settings for another lane (``Controller.lane``;
-                                             without it, a deep copy)
+                                             settings for another lane (without it,
+                                             a deep copy)
     solve_lanes(solvers, qp, checks)         optional, on the class: L QPs of one shape at
                                              once, row l as ``solvers[l].solve`` gives it
                                              (without it, one ``solve`` per lane)
 
-The controller calls ``solve_lanes`` of this module for every step, one robot (L = 1) or
-the lanes of ``sim.lockstep``.
+``solve_lanes`` of this module solves a step's QPs, one robot's (L = 1) or several lanes'.
 """
 
 from __future__ import annotations

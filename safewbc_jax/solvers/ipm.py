@@ -117,7 +117,7 @@ def scale_problem(P, q, G, h, lb, ub, sig, rho, c):
 
 
 class Iterate(NamedTuple):
-    """An interior point, unpacked (for the polish)."""
+    """An interior point, unpacked."""
     u: jax.Array
     s: jax.Array
     t: jax.Array

@@ -177,8 +177,7 @@ def solve(qp: QP, *, bounded=None, dtype=None, settings: Settings | None = None,
     """One controller QP (X = [q_ddot (nv), u (nu), lambda], the block sizes the QP
     carries: a QP from ``qp.assemble``; ValueError for a QP without them, which
     ``solve_generic`` solves) through the reduced problem in u; pure JAX, jit/vmap-able
-    (the relaxed solve runs with zero iterations where it is not needed; ``solve_batch``
-    skips it for a whole batch that does not need it).
+    (the relaxed solve runs with zero iterations where it is not needed).
     ``bounded``: static indices outside u with finite bounds
     (``reduce.bounded_variables``; none for the controller's QP). ``p_blockdiag``: P has
     no cross terms between q_ddot, u and lambda (true of the controller's QP; static:

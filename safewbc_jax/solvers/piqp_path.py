@@ -214,7 +214,7 @@ class PiqpSolver:
                   1 + the largest finite |b| (equalities) or |h|, |lb|, |ub| (inequalities)
         relax_rho, relax_rho_lin   penalty weights passed to ``relax_soft_rows``
         nominal_settings  PIQP settings for the QP as posed only, over ``settings``
-                  (the deployment's reduced QP takes ``REDUCED_QP_SETTINGS``)
+                  (e.g. ``REDUCED_QP_SETTINGS``, for a reduced QP)
         **settings  PIQP settings (eps_abs, eps_rel, max_iter, ...), applied to both the
                   nominal and the relaxed solver
     """
@@ -247,12 +247,11 @@ class PiqpSolver:
     @staticmethod
     def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
         """The policy's outcome for L QPs of one shape, each with its own ``PiqpSolver``
-        (``solvers[l]``; one robot: L = 1, ``solve``; the lanes of ``sim.lockstep``): PIQP
-        solves each QP as posed, the acceptance of all L runs at once
-        (``policy.accept_batch``), and the relaxed QP (b) is solved, per QP, only where the
-        QP as posed failed. ``qp`` and ``checks``: float64 numpy arrays with the leading axis
-        L. Returns one SolveResult whose fields are numpy arrays with the leading axis L; a
-        row does not depend on the other QPs (``tests/test_lockstep.py``)."""
+        (``solvers[l]``; L may be 1): PIQP solves each QP as posed, the acceptance of all L
+        runs at once (``policy.accept_batch``), and the relaxed QP (b) is solved, per QP,
+        only where the QP as posed failed. ``qp`` and ``checks``: float64 numpy arrays with
+        the leading axis L. Returns one SolveResult whose fields are numpy arrays with the
+        leading axis L; a row does not depend on the other QPs (``tests/test_lockstep.py``)."""
         L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
         X = np.empty((L, n))
         status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
@@ -283,10 +282,9 @@ class PiqpSolver:
 
     def solve(self, qp: QP, initvals=None, checks: policy.Checks | None = None) -> SolveResult:
         """The policy's outcome for ``qp`` (class docstring): ``solve_lanes`` with this one
-        solver, as the deployed controller calls it (one robot is one lane). ``checks``:
-        ``policy.checks`` of this QP computed before (the deployment's jitted step does);
-        qp's arrays must then be float64 numpy already (they are not converted); without
-        them they are computed here. ``initvals``: accepted and ignored (PIQP's
+        solver (one QP is one lane). ``checks``: ``policy.checks`` of this QP computed
+        before; qp's arrays must then be float64 numpy already (they are not converted);
+        without them they are computed here. ``initvals``: accepted and ignored (PIQP's
         interfaces ignore it: module docstring)."""
         del initvals
         t0 = time.perf_counter_ns()

@@ -20,9 +20,9 @@ conflict; the loop must still command something):
   (c) otherwise FAILED: x all NaN, and the caller holds its last good torque.
 
 ``decide`` is that rule and ``finish`` builds the ``SolveResult`` from the two attempts;
-the JAX solver runs them traced (``xp`` = jax.numpy: selections by ``where``, batches by
-vmap), the PIQP path on the host (``xp`` = numpy, one QP: plain Python selections).
-Everything here is written once for either ``xp``.
+they run traced (``xp`` = jax.numpy: selections by ``where``, batches by vmap) or on the
+host (``xp`` = numpy, one QP: plain Python selections). Everything here is written once
+for either ``xp``.
 """
 
 from __future__ import annotations
@@ -84,9 +84,9 @@ class Checks(NamedTuple):
         rows x <= rhs,    rows = [G; -I; I],  rhs = [h; -lb; ub],
 
     with ``soft_pen`` -inf on the soft rows of G and 0 on the others (hard rows and the
-    bounds), so that max(rows x - rhs + soft_pen) is the hard rows' violation. The
-    deployment's jitted step computes it with the QP (``xp`` = jax.numpy), and the host's
-    acceptance is then one matrix-vector product and three reductions
+    bounds), so that max(rows x - rhs + soft_pen) is the hard rows' violation. It can be
+    computed with the QP inside a jitted step (``xp`` = jax.numpy); the host's acceptance
+    is then one matrix-vector product and three reductions
     (``residuals_checked``) instead of the dozen small numpy operations of ``scales``
     and ``residuals``."""
 
@@ -113,7 +113,7 @@ def residuals_checked(x, qp: QP, ch: Checks):
     arrays. A non-finite x gives a NaN or +inf in ineq (each x_i is in two rows, +x_i - ub_i
     and -x_i + lb_i: an infinite x_i makes one of them +inf or inf - inf), so that ineq's
     test also rejects it; ``tests/test_piqp_path.py`` holds the two to each other. Leading
-    axes of x, of qp's arrays and of ch's arrays are a batch of QPs (``accept_batch``);
+    axes of x, of qp's arrays and of ch's arrays are a batch of QPs;
     the residuals then have those axes (0-d arrays for one QP)."""
     def mv(m, y):                                # m y over leading axes
         return m @ y if y.ndim == 1 else (m @ y[..., None])[..., 0]
@@ -131,7 +131,7 @@ def residuals_checked(x, qp: QP, ch: Checks):
 
 
 def accept_batch(x, qp: QP, status, feas_tol, checks: Checks):
-    """``accept`` with ``checks`` for a batch of QPs on the host (``PiqpSolver.solve_lanes``):
+    """``accept`` with ``checks`` for a batch of QPs on the host:
     x (L, n), status (L,) SolveStatus codes, qp's and checks' arrays with the leading axis
     L. Returns (status (L,), (eq, ineq, hard) each (L,)); the residuals are NaN where the
     solver did not report SOLVED, as ``accept`` leaves them on the host."""
@@ -151,7 +151,7 @@ def accept(x, qp: QP, status, feas_tol, xp=np, slack=None, checks: Checks | None
     docstring); ``slack`` (on G's rows) checks the relaxed QP's rows instead of G's.
     ``checks`` (host only, without ``slack``): this QP's ``Checks``, computed before.
     Returns (status, (eq, ineq, hard)); on the host, where the solver did not report
-    SOLVED, the residuals are not computed (NaN: ``finish`` never uses them then)."""
+    SOLVED, the residuals are not computed (NaN)."""
     if xp is not jnp and status != SOLVED:
         return status, (float("nan"),) * 3
     if checks is not None:
@@ -187,7 +187,7 @@ class Attempt(NamedTuple):
 
 
 def skipped(x_like, xp=np) -> Attempt:
-    """The relaxed attempt where no QP needed it (never selected by ``finish``)."""
+    """The relaxed attempt where no QP needed it (a placeholder)."""
     nan = xp.full((), xp.nan, x_like.dtype)
     zero = xp.zeros((), jnp.int32) if xp is jnp else 0
     return Attempt(x=xp.full_like(x_like, xp.nan), status=xp.full((), NUMERICAL, jnp.int32)

@@ -5,8 +5,8 @@
 
 with fixed shapes, as one pytree. ``soft`` marks the rows of G that the fallback policy
 may relax with a heavily weighted slack (barrier and ZMP rows); the others (friction,
-unilateral contact) are never relaxed. Everything left of this pytree is pure JAX;
-the JAX solver and the PIQP path both take it.
+unilateral contact) are never relaxed. Everything left of this pytree (the controller
+side) is pure JAX.
 
 Block sizes. The controller's QP (``qp.assemble``) is over X = [q_ddot (nv), u (nu),
 lambda (nc)] and says so: ``nv``, ``nu``, ``nc`` are static data of the pytree (part of

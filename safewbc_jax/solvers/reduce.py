@@ -25,11 +25,10 @@ and this reduction is a solver-side step that both solvers use. Bounds on q_ddot
 lambda, if any are finite, are turned into rows of G (``bounded_variables``).
 
 ``eliminate`` is written once against ``xp`` (numpy or jax.numpy) and a set of
-factorisations (``HOST``: scipy on the host, the PIQP path's; ``JAX``: jax.scipy, the
-deployment's jitted step; ``BATCHED``: ``lapack_batched``, the JAX solver's, safe under
-vmap). N's identity block is never multiplied, and with ``p_blockdiag`` (P without
-q_ddot/u/lambda cross blocks, as the controller's; ``p_block_diagonal`` checks it) only
-P's diagonal blocks are.
+factorisations (``HOST``: scipy on the host; ``JAX``: jax.scipy, for jit; ``BATCHED``:
+``lapack_batched``, safe under vmap). N's identity block is never multiplied, and with
+``p_blockdiag`` (P without q_ddot/u/lambda cross blocks, as the controller's;
+``p_block_diagonal`` checks it) only P's diagonal blocks are.
 
 ``reduce_generic``: a QP without that structure (JAX solver, ``jax_qp.solve_generic``):
 x = Y R^-T b + Z y with Z an orthonormal basis of null(A) from a complete QR of A' (the
@@ -92,7 +91,7 @@ def _blocks(qp: QP) -> tuple[int, int]:
 
 
 def bounded_variables(qp: QP) -> np.ndarray:
-    """Indices outside u with a finite bound (static data for ``eliminate``; empty for
+    """Indices outside u with a finite bound (static data of the elimination; empty for
     the controller's QP). Concrete arrays; one QP, or a batch whose QPs share it."""
     nv, nu = _blocks(qp)
     lb, ub = np.asarray(qp.lb), np.asarray(qp.ub)
@@ -164,21 +163,20 @@ def eliminate(qp: QP, bounded=None, p_blockdiag: bool = False, *, xp=jnp,
 
 
 def eliminate_equalities(qp: QP, bounded=None, p_blockdiag: bool = False):
-    """``eliminate`` in JAX (jax.scipy factorisations; jit, not for large vmaps: the JAX
-    solver uses ``BATCHED``)."""
+    """``eliminate`` in JAX (jax.scipy factorisations; for jit, not for large vmaps:
+    those take ``BATCHED``)."""
     return eliminate(qp, bounded, p_blockdiag, xp=jnp, la=JAX)
 
 
 def eliminate_equalities_np(qp: QP, bounded=None, p_blockdiag: bool = False):
-    """``eliminate`` in numpy/scipy, for the single-robot path (a handful of LAPACK calls
-    on the host cost less than their XLA CPU dispatch)."""
+    """``eliminate`` in numpy/scipy on the host (a handful of LAPACK calls on the host
+    cost less than their XLA CPU dispatch)."""
     qp = qp.with_arrays(lambda a: np.asarray(a))
     return eliminate(qp, bounded, p_blockdiag, xp=np, la=_scipy_fast())
 
 
 def expand(u, red: Reduction):
-    """X = x0 + N u; leading axes of u and of red's arrays are a batch (the lockstep's
-    lanes on the host: ``deploy.compiled.CompiledStep.finish``)."""
+    """X = x0 + N u; leading axes of u and of red's arrays are a batch."""
     if u.ndim == 1:
         return red.x0 + red.N @ u
     return red.x0 + (red.N @ u[..., None])[..., 0]

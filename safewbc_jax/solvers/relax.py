@@ -12,8 +12,8 @@ Given the QP (see ``safewbc_jax.solvers.problem``)
                 0 <= s_i <= +inf  for soft rows,   s_i = 0 (lb = ub = 0)  for hard rows.
 
 Every row gets a slack so that the shape depends only on the shape of G, never on the
-values of ``soft``: the batched JAX solver can ``jit``/``vmap`` it over robots whose soft
-masks differ. Hard rows keep their slack pinned to zero, so for them the relaxed row is the
+values of ``soft``: it can be ``jit``-ed and ``vmap``-ped over robots whose soft masks
+differ. Hard rows keep their slack pinned to zero, so for them the relaxed row is the
 original row.
 
 Feasibility. Let H = {x : A x = b, lb <= x <= ub, G_i x <= h_i for every hard row i}.
@@ -50,7 +50,7 @@ DEFAULT_RHO_LIN = 0.0
 
 def _relax(qp: QP, xp, rho, rho_lin) -> QP:
     """The construction, written once for an array namespace ``xp`` (jax.numpy or numpy) so
-    that the PIQP path (numpy, no dispatch overhead) and the JAX solver build the same QP."""
+    that numpy (no dispatch overhead) and JAX build the same QP."""
     P, q, A, b, G, h, lb, ub, soft = (qp.P, qp.q, qp.A, qp.b, qp.G, qp.h, qp.lb, qp.ub,
                                       qp.soft)
     dtype = P.dtype
@@ -87,8 +87,8 @@ def relax_soft_rows(qp: QP, rho=DEFAULT_RHO, rho_lin=DEFAULT_RHO_LIN) -> QP:
 
 
 def relax_soft_rows_np(qp: QP, rho=DEFAULT_RHO, rho_lin=DEFAULT_RHO_LIN) -> QP:
-    """``relax_soft_rows`` on numpy arrays (same code path), for the single-robot solver
-    where a JAX dispatch per fallback would cost more than the construction itself."""
+    """``relax_soft_rows`` on numpy arrays (same code path), for where a JAX
+    dispatch per fallback would cost more than the construction itself."""
     qp_np = QP(**{f: np.asarray(getattr(qp, f), dtype=np.float64)  # type: ignore[arg-type]
                   for f in ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")})
     return _relax(qp_np, np, rho, rho_lin)

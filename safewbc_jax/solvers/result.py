@@ -2,9 +2,9 @@
 
 The JAX solver (``jax_qp.solve`` / ``solve_batch``: jax arrays, a leading batch axis in a
 batch) and the PIQP path (``piqp_path.PiqpSolver.solve``: numpy / Python scalars, one
-QP) return the same NamedTuple with the same meaning of every field, and the control
-step (``control_step.conclude``) takes either. Where no usable x exists (fallback
-FAILED) x is all NaN in both, never a number that could pass for a command.
+QP) return the same NamedTuple with the same meaning of every field. Where no usable x
+exists (fallback FAILED) x is all NaN in both, never a number that could pass for a
+command.
 """
 
 from __future__ import annotations
@@ -78,8 +78,8 @@ def row(res: SolveResult, i: int) -> SolveResult:
 
 
 def failed(n: int, status: int = SolveStatus.NUMERICAL) -> SolveResult:
-    """A host-side FAILED result: what a loop records where there is no usable solution,
-    e.g. for a refused measurement.
+    """A host-side FAILED result: a step without a usable solution, e.g. one with a
+    refused measurement.
 
     Args:
         n: the number of variables.

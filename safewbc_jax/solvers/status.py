@@ -1,7 +1,7 @@
 """Solve status codes shared by every QP solver of the project (PIQP path, JAX solver).
 
-Plain integers (an ``IntEnum``) so that a batched JAX solver can return them as an int32
-array and the single-robot path can compare them with ``==`` against the same names.
+Plain integers (an ``IntEnum``) so that JAX returns them as an int32 array and the host
+compares them with ``==`` against the same names.
 """
 
 from __future__ import annotations

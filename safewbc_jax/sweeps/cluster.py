@@ -139,8 +139,8 @@ _LANES: dict = {}       # (run, lockstep) -> pool.Lanes: compiled once per worke
 
 
 def run_chunk(job: Job, params, push, perturb_v) -> dict:
-    """One chunk in this process: the metric columns of its rollouts (``run_sweep``'s
-    executor contract). ``job``: ``pool.Job``, its engine the chunk's."""
+    """One chunk in this process: the metric columns of its rollouts. ``job``:
+    ``pool.Job``, its engine the chunk's."""
     from safewbc_jax.base import runtime
 
     if job.engine == "mujoco":

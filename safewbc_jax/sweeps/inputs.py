@@ -56,7 +56,7 @@ def params_batch(base, axes, values: np.ndarray):
 
 def pushes(spec: SweepSpec, values: np.ndarray) -> tuple[Push, dict]:
     """The rollouts' pushes from the fixed push and the swept push axes: (the batched
-    ``Push`` every engine takes; its table columns: magnitude, direction in degrees, at,
+    ``Push``; its table columns: magnitude, direction in degrees, at,
     duration, and the force vector fx, fy, fz)."""
     b = values.shape[0]
     out = {k: np.full(b, float(v)) for k, v in dataclasses.asdict(spec.push).items()}
@@ -94,7 +94,7 @@ def perturbations(seed: int, rollouts: np.ndarray, std: np.ndarray,
     """(len(rollouts), nv) initial velocity perturbations: rollout k draws from its own
     generator seeded by (seed, k), so a rollout's perturbation does not depend on the
     chunking, the batch size or the number of devices. With ``period`` P, rollout k uses
-    draw k mod P (tune-poles: every candidate meets the same draws)."""
+    draw k mod P (rollouts P apart meet the same draws)."""
     out = np.zeros((len(rollouts), std.size))
     if not np.any(std):
         return out

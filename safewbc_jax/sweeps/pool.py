@@ -20,7 +20,7 @@ killed and replaced, and its group is run again (``retries`` times) and then rec
 failed with the reason in the ``error`` column (metrics NaN, counts -1). Workers end with
 the parent, also when it is killed (``PR_SET_PDEATHSIG``, and a check of the parent's pid
 once a second). Linux ties ``PR_SET_PDEATHSIG`` to the thread that started the worker:
-use a pool from one thread that outlives it (``run_sweep`` does, from the main thread).
+use a pool from one thread that outlives it.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ START_TIMEOUT_S = 1800.0      # a worker's import, compile and warm-up
 
 
 class Job(NamedTuple):
-    """What a worker process (a pool's, or a Ray task's) needs to roll out a sweep's
+    """What a worker process needs to roll out a sweep's
     chunks: the sweep's ``run`` (``SweepSpec.run``, a ``runspec.RunSpec``), the lockstep
     width, JAX's compilation cache folder (None: none), the engine, and the mjx engine's
     precision (``BatchConfig.precision``). Pickled to each worker."""

@@ -106,7 +106,7 @@ def _fmt_s(s: float) -> str:
 
 
 def preflight(spec: SweepSpec, seed: int | None = None, *, check_poles: bool = True):
-    """Every check ``safewbc sweep`` makes of a parsed spec before the closed loop compiles:
+    """Every check of a parsed spec before the closed loop compiles:
     the fixed params, the perturbation scales against the simulation model, the grid, and
     (``check_poles``) Theorem 1 for every rollout at its own perturbed start state
     (``admissible.check_sweep``; seconds, one small jit). Returns (base params, velocity
@@ -124,7 +124,7 @@ def preflight(spec: SweepSpec, seed: int | None = None, *, check_poles: bool = T
 
 @dataclasses.dataclass
 class SweepPlan:
-    """What ``run_sweep`` settled before its first chunk: the options resolved and checked,
+    """What is settled before a sweep's first chunk: the options resolved and checked,
     the chunk plan written to the folder's manifest, the inputs' common parts, and the
     chunks this call runs."""
 
@@ -244,7 +244,7 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     with ``map_chunks(spec, jobs)`` instead takes every (chunk, params, push, perturb_v) of
     ``jobs`` and yields (chunk, metrics, None), or (chunk, None, why it has no result), in
     the order the chunks finish (``cluster.RayExecutor``).
-    ``max_chunks`` stops after that many chunks of this call (for notebooks and tests).
+    ``max_chunks`` stops after that many chunks of this call.
     Progress: with ``progress`` None, a tqdm bar of the rollouts (``progress.Progress``,
     titled ``desc``) and the messages go to ``stream`` (default stderr), nothing with
     ``quiet``; a ``progress`` callable instead receives every message and one line per

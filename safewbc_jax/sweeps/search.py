@@ -9,9 +9,9 @@ tuning run resumes by replaying its finished generations from their tables.
 * :class:`Cmaes`: CMA-ES (Hansen's covariance matrix adaptation evolution strategy) from
   the ``cmaes`` package, bounded to the box. It stops early on the package's own criteria
   (the spread of the values over recent generations, the step size).
-* :class:`GridRefine`: the successive grid refinement that ``tune-poles`` has always run:
-  ``points`` values per parameter over a box, then a box ``shrink`` times as wide centred
-  on the best candidate so far, for ``rounds`` rounds.
+* :class:`GridRefine`: successive grid refinement: ``points`` values per parameter over a
+  box, then a box ``shrink`` times as wide centred on the best candidate so far, for
+  ``rounds`` rounds.
 """
 
 from __future__ import annotations

@@ -177,7 +177,7 @@ class SweepSpec:
 
     @property
     def run(self):
-        """The ``runspec.RunSpec`` both engines take (walking's speed: the default)."""
+        """The sweep's run, a ``runspec.RunSpec`` (walking's speed: the default)."""
         from safewbc_jax.sim.runspec import RunSpec
         return RunSpec(self.scenario, self.barrier, self.duration, self.settle, self.control_dt,
                        safe_sets=tuple(self.safe_sets))
@@ -227,7 +227,7 @@ class SweepSpec:
 
     def with_rows(self, axes: tuple, rows) -> "SweepSpec":
         """A copy whose settings are the listed ``rows`` (one value per axis of ``axes``)
-        instead of the grid product (tune-poles sweeps such lists)."""
+        instead of the grid product."""
         rows = tuple(tuple(float(x) for x in r) for r in rows)
         if not rows or any(len(r) != len(axes) for r in rows):
             raise ValueError("with_rows: every row needs one value per axis")

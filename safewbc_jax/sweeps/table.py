@@ -37,7 +37,7 @@ class TableError(ValueError):
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Manifest:
     """A sweep folder's plan (``sweep.json``): what a resumed or second host's run must
-    share, and what ``report`` reads. The fields are the file's keys, in its order;
+    share. The fields are the file's keys, in its order;
     ``objective_weights``, ``safe_sets`` and ``engine`` take their defaults in folders
     begun before them, ``lockstep`` (the mujoco engine's only) 1 in a mujoco folder begun
     before the lockstep."""

@@ -111,7 +111,7 @@ def config(spec: SweepSpec, *, method=None, budget=None, validate=None,
            params=None) -> TuneConfig:
     """The tuning configuration: the spec's [tune] table, with ``method``, ``budget`` and
     ``validate`` from the command line when given; ``params`` (TuneParam tuple) replaces
-    ``tune.params`` (the tune-poles preset). SpecError names what is wrong."""
+    ``tune.params``. SpecError names what is wrong."""
     t = spec.tune
     params = params if params is not None else t.params or poles_preset(spec)
     method = method or t.method
@@ -200,7 +200,7 @@ def _base_value(base, p: TuneParam) -> float:
 
 def _theorem1(spec, cfg, base, seed, n_draws, say):
     """Repair: raise the lower bound of each tuned first pole to Theorem 1's bound over the
-    distribution's start states. Returns (params, {barrier: etas}) for the refusal check."""
+    distribution's start states. Returns (params, {barrier: etas})."""
     from safewbc_jax.sweeps import admissible
     from safewbc_jax.sweeps.run import sim_model
 
@@ -327,7 +327,7 @@ def _make_search(cfg: TuneConfig, params, base, seed):
 
 def _start(params, base) -> np.ndarray:
     """The start value of each tuned parameter: ``start``, else the spec's own value,
-    clipped into the bounds. CMA-ES starts there, and the baseline is rolled out there."""
+    clipped into the bounds (the search's start)."""
     return np.array([float(np.clip(p.start if p.start is not None else _base_value(base, p),
                                    p.lo, p.hi)) for p in params])
 
@@ -378,8 +378,8 @@ class _Run:
 
 
 def default_work(out, title: str = "tune") -> Path:
-    """The folder of a run's generations: OUT without .toml + "_tune" ("_rounds" for
-    ``tune-poles``)."""
+    """The folder of a run's generations: OUT without .toml + "_tune" ("_rounds" where
+    ``title`` is "tune-poles")."""
     out = Path(out)
     return out.with_name(out.stem + ("_rounds" if title == "tune-poles" else "_tune"))
 

@@ -1,4 +1,4 @@
-"""The progress display of ``safewbc run``, ``sweep`` and ``tune-poles``: a tqdm bar on
+"""The progress display of a run, a sweep or a tuning run: a tqdm bar on
 stderr with its rate, its ETA and the current *phase* ("compiling", "standing",
 "motion", "rolling out", ...) as the bar's postfix.
 

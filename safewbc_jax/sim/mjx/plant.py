@@ -1,7 +1,7 @@
 """The batched path's plant: what every rollout of a batch shares (``BatchConfig``) and the
 host-side constants built from it once per config (``Plant``: the controller and MJX models,
 index maps, the start state), with the checks of a config that run before anything
-compiles (``BatchError``). ``batch.rollout`` steps rollouts of a plant.
+compiles (``BatchError``).
 """
 
 from __future__ import annotations

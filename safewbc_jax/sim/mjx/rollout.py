@@ -3,10 +3,9 @@ stepped together, scanned over time, vmapped over a batch of ControllerParams, p
 initial velocity perturbations. Every scenario of the deployment loop runs here: squat,
 bow, arms, and walking ("walk", "push") with its gait state carried per rollout.
 
-One control step of one rollout is the control step every loop shares
-(``control_step.step_jax``: measurement check, gait, rigid swing-leg rates, QP, the JAX QP
-solver ``jax_qp.solve`` with its fallback policy, held torque, motor torques, metrics),
-between what stays per simulator:
+One control step of one rollout is ``control_step.step_jax`` (measurement check, gait,
+rigid swing-leg rates, QP, the JAX QP solver ``jax_qp.solve`` with its fallback policy,
+held torque, motor torques, metrics), between what stays per simulator:
 
     MJX Data -> Measurement (q, v through the state map; walking: each sole's normal force
                 on the floor, MJX's pyramid constraint forces summed as ``mj_contactForce``
@@ -366,8 +365,7 @@ def _arg_shapes(pl: Plant, batch: int) -> tuple:
 def _run_scalars(n_steps, settle, speed, t_half) -> tuple:
     """The compiled closed loop's run-time scalars, typed as ``_arg_shapes`` types them:
     int32 and strong float64. (A Python float through ``jnp.asarray`` is weakly typed,
-    and a weak type is another program: ``memory_bytes``'s compile would then not be the
-    one ``run_batch`` calls, nor ``export``'s the one that runs.)"""
+    and a weak type is another program, with a compile of its own.)"""
     f = jnp.float64
     return (jnp.asarray(n_steps, jnp.int32), jnp.asarray(settle, f), jnp.asarray(speed, f),
             jnp.asarray(t_half, f))
