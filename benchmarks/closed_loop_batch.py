@@ -46,7 +46,7 @@ def single_robot_loop(n_steps: int, settle: float) -> tuple[float, float]:
     cpus = os.sched_getaffinity(0)
     os.sched_setaffinity(0, {max(cpus)})     # pinned to one core, as `safewbc run` is
     ms, _, _, sm, d = load_at_stand()
-    ctl = Controller("arms", settle=settle)
+    ctl = Controller("arms", settle=settle, engine="xla")
     ctl.start(*sm.to_controller(d.qpos, d.qvel))
     motor_ids = np.array([ms.actuator(n).id for n in ctl.motors.names])
     lat = []

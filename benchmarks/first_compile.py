@@ -37,7 +37,7 @@ def main(argv=None) -> dict:
         from safewbc_jax.sim.mujoco_loop import load_at_stand
 
         _, _, _, sm, d = load_at_stand()
-        Controller("squat").start(*sm.to_controller(d.qpos, d.qvel))
+        Controller("squat", engine="xla").start(*sm.to_controller(d.qpos, d.qvel))
     else:
         from safewbc_jax.sim.mjx import rollout as R
 

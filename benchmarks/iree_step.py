@@ -158,7 +158,7 @@ def main(argv=None) -> dict:
 
     _, _, _, sm, d = load_at_stand()
     q0, v0 = sm.to_controller(d.qpos, d.qvel)
-    ctl = Controller(args.scenario)
+    ctl = Controller(args.scenario, engine="xla")
     ctl.start(q0, v0, warm_up=False)
     ctx = ctl.ctx
     fixed_tree = (ctl.params, ctl.start_data, ctl.run_values)

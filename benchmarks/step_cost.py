@@ -30,7 +30,7 @@ def deployed(names, q0, v0) -> dict:
 
     out = {}
     for name in names:
-        ctl = Controller(name)
+        ctl = Controller(name, engine="xla")
         ctl.start(q0, v0, warm_up=False)
         out[name] = ctl.kernels(cost=True)
     return out
@@ -48,7 +48,7 @@ def parts(name, q0, v0) -> dict:
     from safewbc_jax.control.outputs import StepTerms
     from safewbc_jax.solvers import reduce
 
-    ctl = Controller(name)
+    ctl = Controller(name, engine="xla")
     ctl.start(q0, v0, warm_up=False)
     m, sc, params, start = ctl.model, ctl.scenario, ctl.params, ctl.start_data
     q, v, tau = jnp.asarray(q0), jnp.asarray(v0), jnp.asarray(0.3)

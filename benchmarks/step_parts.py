@@ -67,7 +67,7 @@ def main(argv=None) -> dict:
     pinned = pin_to_cpu(args.cpu)
     _, _, _, sm, d = load_at_stand()
     q0, v0 = sm.to_controller(d.qpos, d.qvel)
-    ctl = Controller(args.scenario)
+    ctl = Controller(args.scenario, engine="xla")
     ctl.start(q0, v0, warm_up=False)
     model, sc, params, start = ctl.model, ctl.scenario, ctl.params, ctl.start_data
     in_contact = jnp.asarray(sc.in_contact, float)

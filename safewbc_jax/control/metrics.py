@@ -300,7 +300,8 @@ def summarize(flat: dict, info: dict, scenario_name: str, control_dt: float,
     settle, barriers, t_qp and t_solve in us per step, compile_s), the latencies, and the
     finalized metrics (``finalize``), nested."""
     m = nest(flat)
-    out = {"scenario": scenario_name, "solver": solver, "sim_dt": info["sim_dt"],
+    out = {"scenario": scenario_name, "solver": solver,
+           "engine": info.get("engine", "xla"), "sim_dt": info["sim_dt"],
            "control_dt": control_dt, "duration_s": info["duration_s"],
            "settle_s": info["settle"]}
     for k in ("fell", "control_steps", "bad_measurements", "qp_solved", "qp_failed",

@@ -61,6 +61,24 @@ class Command:
     latency_us: float
 
 
+ENGINES = ("auto", "c", "xla")
+
+
+def resolve_engine(engine: str) -> str:
+    """"c" or "xla" for ``engine``: "auto" is C where a C compiler exists, else XLA.
+    Raises ValueError for another name, or for "c" without a compiler."""
+    from safewbc_jax.deploy.codegen.build import compiler
+
+    if engine not in ENGINES:
+        raise ValueError(f"engine {engine!r}: one of {', '.join(ENGINES)}")
+    if engine == "auto":
+        return "c" if compiler() is not None else "xla"
+    if engine == "c" and compiler() is None:
+        raise ValueError("engine 'c': no C compiler found (set CC, or install cc, gcc or "
+                         "clang), or use engine 'xla'")
+    return engine
+
+
 class Layouts(NamedTuple):
     """The flat-vector layout of each argument and result of the compiled step."""
 
@@ -129,7 +147,8 @@ class CompiledStep:
         no_solution: the flat solve record of a step without a solution.
     """
 
-    def __init__(self, ctx: control_step.Context, fixed: tuple, q: np.ndarray, v: np.ndarray):
+    def __init__(self, ctx: control_step.Context, fixed: tuple, q: np.ndarray, v: np.ndarray,
+                 engine: str = "xla", native: bool = False):
         self.ctx = ctx
         self.walking = ctx.walking
         self.nq, self.nv, self.nu = ctx.model.nq, ctx.model.nv, ctx.model.nu
@@ -165,10 +184,36 @@ class CompiledStep:
 
         self.prepare_fn: Callable = prepare
         self.conclude_fn: Callable = conclude
-        self.prepare, self.conclude = jax.jit(prepare), jax.jit(conclude)
+        self.prepare: Callable = jax.jit(prepare)
+        self.conclude: Callable = jax.jit(conclude)
         # their layouts are recorded by the first trace of prepare / conclude
         self.unpack_qp: Callable = qp_packer.unpack
         self.unpack_record: Callable = out_packer.unpack
+        self.engine = resolve_engine(engine)
+        self.c_source: str | None = None
+        self.c_built = False           # compiled at this start, not found in the cache
+        if self.engine == "c":
+            self._use_c(native)
+
+    def _use_c(self, native: bool) -> None:
+        """``prepare`` and ``conclude`` as generated C (``deploy.codegen``), built with the
+        system compiler (cached by the source's hash) and called on numpy arrays."""
+        from safewbc_jax.deploy.codegen import build, emit
+
+        L = self.layouts
+        zeros = lambda flat: np.zeros(flat.size)  # noqa: E731
+        jp = jax.make_jaxpr(self.prepare_fn)(zeros(L.fixed), zeros(L.state), zeros(L.meas))
+        jc = jax.make_jaxpr(self.conclude_fn)(zeros(L.fixed), zeros(L.tally), zeros(L.prep),
+                                              zeros(L.sol))
+        fp, fc = emit.emit_function("swbc_prepare", jp), emit.emit_function("swbc_conclude", jc)
+        self.c_source = emit.c_file([fp, fc])
+        path, self.c_built = build.build(self.c_source, native)
+        lib = build.load(path)
+        self.prepare, self.conclude = build.CCall(lib, fp), build.CCall(lib, fc)
+
+    def asarray(self, a):
+        """``a`` as the engine's arrays take it (numpy for C, a JAX array for XLA)."""
+        return np.asarray(a) if self.engine == "c" else jnp.asarray(a)
 
     # -- flat vectors
     def pack_fixed(self, params, start, run: control_step.RunValues) -> np.ndarray:

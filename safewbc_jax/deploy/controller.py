@@ -30,7 +30,7 @@ from safewbc_jax.control import metrics
 from safewbc_jax.control import step as control_step
 from safewbc_jax.control.params import as_float64
 from safewbc_jax.control.step import Measurement
-from safewbc_jax.deploy.compiled import Command, CompiledStep, LaneState
+from safewbc_jax.deploy.compiled import Command, CompiledStep, LaneState, resolve_engine
 from safewbc_jax.deploy.checks import check_barrier_poles, check_state
 from safewbc_jax.deploy.motors import MotorMap
 from safewbc_jax.model import robot
@@ -77,6 +77,9 @@ class Controller:
             measured over its second half); None: not measured.
         keep_metrics: False leaves out ``conclude`` altogether (no metrics, no
             ``record``: the command alone).
+        engine: "c" (the step generated as C, ``deploy.codegen``, built with the system
+            compiler), "xla" (jitted by XLA) or "auto" (C where a compiler exists).
+        native: with the C engine, build with ``-march=native``.
 
     Raises:
         ValueError: for a settle, duration, control period or speed out of range, or a
@@ -86,16 +89,17 @@ class Controller:
     of the QP's equality rows), the solver on the reduced QP, and the held-torque rule;
     its ``conclude`` (metrics, record) runs after the command is out (``flush``).
 
-    Attributes: ``steps`` (calls of ``step``), ``qp_failed``, ``fallbacks`` (relaxed QPs),
-    ``bad_measurements``, ``last_times`` ((prepare, solve) of the last good step in us),
-    ``compile_s``, ``compiled`` (the ``CompiledStep``, after ``start``), ``motors``
-    (``MotorMap``), ``state``, ``tally``, ``gait``, ``record``; ``metrics()``.
+    Attributes: ``steps``, ``qp_failed``, ``fallbacks``, ``bad_measurements``, ``last_times``
+    ((prepare, solve) of the last good step in us), ``compile_s``, ``engine`` ("c" or
+    "xla"), ``compiled`` (the ``CompiledStep``), ``motors``, ``state``, ``tally``, ``gait``,
+    ``record``; ``metrics()``.
     """
 
     def __init__(self, scenario, params=None, control_dt: float = control_step.DEFAULT_CONTROL_DT,
                  solver: Any = "piqp", barrier: bool = True,
                  speed: float = control_step.DEFAULT_SPEED, settle: float | None = None,
-                 duration: float | None = None, keep_metrics: bool = True):
+                 duration: float | None = None, keep_metrics: bool = True,
+                 engine: str = "auto", native: bool = False):
         import mujoco
 
         sc = scenarios.get_scenario(scenario, barrier)
@@ -110,6 +114,7 @@ class Controller:
         self.params = sc.default_params() if params is None else as_float64(params)
         self.control_dt, self.barrier, self.speed = float(control_dt), bool(barrier), speed
         self.keep_metrics = bool(keep_metrics)
+        self.engine, self.native = resolve_engine(engine), bool(native)
         t_half = (metrics.NO_HALF if duration is None else
                   metrics.half_time(n_steps, settle, control_dt))
         mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
@@ -156,8 +161,8 @@ class Controller:
         q, v = np.asarray(q, float), np.asarray(v, float)
         self.start_data = self._checked_start(q, v, self.params)
         fixed = (self.params, self.start_data, self.run_values)
-        self.compiled = CompiledStep(self.ctx, fixed, q, v)
-        self._fixed = jnp.asarray(self.compiled.pack_fixed(*fixed))
+        self.compiled = CompiledStep(self.ctx, fixed, q, v, self.engine, self.native)
+        self._fixed = self.compiled.asarray(self.compiled.pack_fixed(*fixed))
         self.start_state = (q, v)
         self.reset()
         force = np.zeros(2)
@@ -183,7 +188,7 @@ class Controller:
         """
         params = self.params if params is None else as_float64(params)
         self.start_data, fixed, _, _ = self._start_arrays(q, v, params)
-        self.params, self._fixed = params, jnp.asarray(fixed)
+        self.params, self._fixed = params, self._cs.asarray(fixed)
         self.start_state = (np.asarray(q, float), np.asarray(v, float))
         self.reset()
 
@@ -223,7 +228,7 @@ class Controller:
         self._record = self._pending = None
         if self.compiled is not None:
             self.lane.reset()
-            self._state, self._tally = (jnp.asarray(a) for a in
+            self._state, self._tally = (self.compiled.asarray(a) for a in
                                         self.compiled.initial(*self.start_state))
 
     @property
@@ -284,13 +289,15 @@ class Controller:
         return r
 
     def kernels(self, cost: bool = False) -> dict:
-        """Per call of the jitted step after ``start``: its kernels by kind
-        (``kernels.count``), or XLA's ``cost`` analysis (``kernels.cost``)."""
+        """Per call of the step as XLA compiles it (whatever the engine), after ``start``:
+        its kernels by kind (``kernels.count``), or XLA's ``cost`` analysis."""
+        import jax
+
         from safewbc_jax.deploy import kernels
-        q, v = self.start_state
-        meas = self._cs.flat_measurement(Measurement(q, v, 0.0, np.zeros(2)))
-        return (kernels.cost if cost else kernels.count)(self._cs.prepare, self._fixed,
-                                                         self._state, meas)
+        cs, (q, v) = self._cs, self.start_state
+        fn = cs.prepare if cs.engine == "xla" else jax.jit(cs.prepare_fn)
+        meas = cs.flat_measurement(Measurement(q, v, 0.0, np.zeros(2)))
+        return (kernels.cost if cost else kernels.count)(fn, self._fixed, self._state, meas)
 
     def prepare_flat(self, state: control_step.ControllerState, meas: Measurement):
         """The jitted ``prepare`` (with the elimination) at a given ControllerState and
@@ -299,7 +306,7 @@ class Controller:
         if self.compiled is None:
             raise RuntimeError("Controller.prepare_flat before start(q, v)")
         lay = self.compiled.layouts
-        new, _, packed = self.compiled.prepare(self._fixed, jnp.asarray(lay.state.pack(state)),
+        new, _, packed = self.compiled.prepare(self._fixed, self._cs.asarray(lay.state.pack(state)),
                                                self.compiled.flat_measurement(meas))
         return (lay.state.unpack(np.asarray(new)), *self.compiled.unpack_qp(packed)[:3])
 
@@ -332,7 +339,7 @@ class Controller:
         if flat is None:           # cannot enter the step: counted here
             tally = cs.layouts.tally.unpack(np.asarray(self._tally))
             tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
-            self._tally = jnp.asarray(cs.layouts.tally.pack(tally))
+            self._tally = cs.asarray(cs.layouts.tally.pack(tally))
             return cs.command(self.lane.last_u, None, "held", reason, t_in)
         self._state, prep, packed = cs.prepare(self._fixed, self._state, flat)
         if reason != "ok":         # refused by the jitted step too: the torque is held

@@ -42,6 +42,7 @@ class RunConfig(RunSpec):
     record_qps_every: int = 0          # keep every k-th QP (full matrices) in the log; 0: none
     push: Push | None = None           # a push on the base (push.Push.single(force, at, for))
     count_kernels: bool = False        # the jitted step's kernels in the info ("kernels")
+    engine: str = "auto"               # the deployed step: "c", "xla" or "auto"
 
 
 class ContactSensing:
@@ -228,7 +229,7 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
     has ``diagnostics`` (the ALIP gait), its values per step are ``gait_diagnostics``.
     """
     n_steps, settle, duration = cfg.schedule()
-    ctl = cfg.controller(params)
+    ctl = cfg.controller(params, engine=cfg.engine)
     sim = SimRobot(ctl.motors.names, cfg.control_dt)
     ms, model, d = sim.ms, sim.model, sim.d
     scenario, walking, gait = ctl.scenario, ctl.walking, ctl.scenario.gait
@@ -276,7 +277,7 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
     tau = arrays["tau"]
     return arrays, dict(fell=fell, settle=settle, duration=duration, n_sub=sim.n_sub,
                         duration_s=float(max(tau[-1], 0.0) + cfg.control_dt) if tau.size else 0.0,
-                        walking=walking,
+                        walking=walking, engine=ctl.engine,
                         sim_dt=float(ms.opt.timestep), torque_limit=np.asarray(model.torque_limit),
                         outputs=names, barriers=[b.name for b in scenario.barriers],
                         monitors=[b.name for b in scenario.monitors],

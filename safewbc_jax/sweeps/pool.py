@@ -113,7 +113,7 @@ class Lanes:
         run = job.run
         self.dt = run.control_dt
         self.n_steps, _, _ = run.schedule()
-        ctl = run.controller()
+        ctl = run.controller(engine="xla")    # the lanes run its XLA step, vmapped
         sim = SimRobot(ctl.motors.names, self.dt)
         sim.reset()
         ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), warm_up=False)

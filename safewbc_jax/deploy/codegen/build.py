@@ -1,0 +1,98 @@
+"""Build emitted C with the system compiler and call it on numpy arrays.
+
+    lib = build(source_text, flags)          # a shared library, cached by the source's hash
+    fn = CCall(lib, cfunction)               # fn(*inputs) -> outputs (numpy)
+
+The build is cached in ``cache_dir()`` (``$SAFEWBC_C_CACHE``, else
+``~/.cache/safewbc-jax/c``) under the SHA-256 of the source, the compiler and its flags, so a
+second start loads the library without compiling.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from safewbc_jax.deploy.codegen.emit import CFunction
+
+CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared", "-fno-math-errno")
+_CTYPES = {"double": ctypes.c_double, "float": ctypes.c_float, "int32_t": ctypes.c_int32,
+           "int64_t": ctypes.c_int64, "uint8_t": ctypes.c_uint8, "uint32_t": ctypes.c_uint32}
+
+
+def compiler() -> str | None:
+    """The system C compiler (``$CC``, else cc, gcc or clang on the PATH), or None."""
+    for cand in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if cand and shutil.which(cand):
+            return cand
+    return None
+
+
+def cache_dir() -> Path:
+    env = os.environ.get("SAFEWBC_C_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "safewbc-jax" / "c"
+
+
+def build(source: str, native: bool = False) -> tuple[Path, bool]:
+    """The shared library of ``source`` (``-march=native`` where ``native``). Returns (its
+    path, whether it was compiled now rather than found in the cache). Raises
+    RuntimeError with the compiler's message where the build fails, or where there is no
+    C compiler."""
+    cc = compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC, or install cc, gcc or clang)")
+    flags = list(CFLAGS) + (["-march=native"] if native else [])
+    key = hashlib.sha256("\0".join([source, cc, *flags]).encode()).hexdigest()[:24]
+    out = cache_dir() / f"step_{key}.so"
+    if out.exists():
+        return out, False
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "step.c"
+        src.write_text(source)
+        so = Path(tmp) / "step.so"
+        r = subprocess.run([cc, *flags, "-o", str(so), str(src), "-lm"], capture_output=True,
+                           text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"{cc} failed on the generated step:\n{r.stderr[-4000:]}")
+        part = out.with_suffix(f".{os.getpid()}.part")
+        shutil.copyfile(so, part)
+        os.replace(part, out)          # atomic: a concurrent start sees all or nothing
+    return out, True
+
+
+class CCall:
+    """One emitted function of a built library, called on numpy arrays: the inputs are
+    converted to the jaxpr's dtypes (C-contiguous), the outputs are preallocated once and
+    returned as fresh copies (``copy=False``: the same arrays each call)."""
+
+    def __init__(self, lib: ctypes.CDLL, fn: CFunction, copy: bool = True):
+        self.fn = fn
+        self.c = getattr(lib, fn.name)
+        self.c.restype = None
+        self.in_dtypes = [np.dtype(a.dtype) for a in fn.in_avals]
+        self.in_shapes = [tuple(a.shape) for a in fn.in_avals]
+        self.outs = [np.zeros(a.shape, a.dtype) for a in fn.out_avals]
+        self.out_ptrs = [o.ctypes.data_as(ctypes.c_void_p) for o in self.outs]
+        self.copy = copy
+
+    def __call__(self, *args):
+        ins = []
+        for a, dt, shape in zip(args, self.in_dtypes, self.in_shapes):
+            a = np.ascontiguousarray(a, dtype=dt)
+            if a.size != int(np.prod(shape, dtype=np.int64)):
+                raise ValueError(f"{self.fn.name}: an input of shape {a.shape}, expected {shape}")
+            ins.append(a)
+        self.c(*[a.ctypes.data_as(ctypes.c_void_p) for a in ins], *self.out_ptrs)
+        return tuple(o.copy() for o in self.outs) if self.copy else tuple(self.outs)
+
+
+def load(path: Path) -> ctypes.CDLL:
+    return ctypes.CDLL(str(path))
