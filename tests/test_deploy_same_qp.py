@@ -1,9 +1,10 @@
 """The deployed step builds the controller's own QP: at 100 random states per scenario
-(walking in both stances as well as standing), the QP of ``Controller``'s jitted step (one
-call: the gait, the QP and the exact elimination, on flat vectors) equals the pure
-functions' (``control_step.prepare`` jitted on its pytrees, and the numpy elimination
-``reduce.eliminate_equalities_np`` of that QP) to 1e-9, and the step's kernel count stays
-bounded.
+(walking in both stances as well as standing), the QP of ``Controller``'s step generated as
+C (``deploy.codegen``; one call: the gait, the QP and the exact elimination, on flat
+vectors) equals the pure functions' (``control_step.prepare`` jitted on its pytrees, and
+the numpy elimination ``reduce.eliminate_equalities_np`` of that QP) to 1e-9; the C
+``prepare`` and ``conclude`` equal the same flat functions jitted by XLA, every output, to
+1e-9; and the XLA step's kernel count stays bounded.
 
 Tolerance: both sides evaluate the same float64 expressions, compiled in two different
 programs (XLA may fuse and reorder them differently), and the two eliminations factor
@@ -21,10 +22,14 @@ from safewbc_jax.model import spatial
 from safewbc_jax.control.step import Measurement
 from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.solvers.problem import FIELDS
+from safewbc_jax.solvers.result import failed
 from safewbc_jax.solvers import reduce
 
 N_STATES = 100
 TOL = 1e-9
+# C against XLA, the same flat functions: only the order of sums (dot products, the
+# factorisations) and libm's last bit differ; 6e-14 relative seen over the five scenarios
+TOL_C = 1e-12
 # XLA's cost analysis of the deployed step (``Controller.kernels(cost=True)``), which is
 # deterministic for a jaxlib version and a backend. Kernels (each costs ~1 us on the CPU
 # whatever its size): at most what the step had before its lean rewrite (squat 286, arms
@@ -65,23 +70,28 @@ def _random_case(rng, ctl, q0, k):
     return st, Measurement(q, v, t, force)
 
 
-def _close(name, a, b):
+def _close(name, a, b, tol=TOL):
     a, b = np.asarray(a, float), np.asarray(b, float)
     assert a.shape == b.shape, name
     fin = np.isfinite(b)
-    assert np.array_equal(fin, np.isfinite(a)) and np.array_equal(a[~fin], b[~fin]), name
+    assert np.array_equal(fin, np.isfinite(a)) and np.array_equal(a[~fin], b[~fin],
+                                                                   equal_nan=True), name
     scale = max(1.0, float(np.abs(b[fin]).max(initial=0.0)))
     err = float(np.abs(a[fin] - b[fin]).max(initial=0.0))
-    assert err <= TOL * scale, f"{name}: max |diff| {err:.3g} (scale {scale:.3g})"
+    assert err <= tol * scale, f"{name}: max |diff| {err:.3g} (scale {scale:.3g})"
     return err / scale
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["squat", "bow", "arms", "walk", "push"])
 def test_deployed_step_builds_the_pure_functions_qp(stand, name):
-    ctl = Controller(name)
+    ctl = Controller(name, engine="c")        # the generated C step (deploy.codegen)
     ctl.start(*stand)
     fixed = (ctl.params, ctl.start_data, ctl.run_values)
+    cs = ctl.compiled
+    lay, xla_prepare, xla_conclude = cs.layouts, jax.jit(cs.prepare_fn), jax.jit(cs.conclude_fn)
+    flat_fixed = cs.pack_fixed(*fixed)
+    tally = lay.tally.pack(control_step.init_state(ctl.ctx, *stand, np, np.float64)[1])
     ref = jax.jit(lambda f, s, m: control_step.prepare(ctl.ctx, *f, s, m))
     rng = np.random.default_rng(14)
     bounded = None
@@ -105,6 +115,19 @@ def test_deployed_step_builds_the_pure_functions_qp(stand, name):
             _close(f"{name} state {k}: map back to X", a, b)
         if ctl.walking:
             stances.add(float(new.gait.stance))
+        # the same flat step by XLA: prepare's every output, and conclude's at a solution
+        flat_in = (flat_fixed, lay.state.pack(state), cs.flat_measurement(meas))
+        got, want = cs.prepare(*flat_in), xla_prepare(*flat_in)
+        for what, a, b in zip(("state", "prepared", "packed QP"), got, want):
+            worst = max(worst, _close(f"{name} state {k}: C/XLA {what}", a, b, TOL_C))
+        sol = cs.flat_solution(failed(cs.nx)._replace(
+            x=rng.standard_normal(cs.nx), status=0, fallback=k % 2, iterations=5,
+            eq_residual=1e-9))
+        got, want = cs.conclude(flat_fixed, tally, got[1], sol), xla_conclude(
+            flat_fixed, tally, want[1], sol)
+        for what, a, b in zip(("tally", "record"), got, want):
+            worst = max(worst, _close(f"{name} state {k}: C/XLA conclude {what}", a, b,
+                                      TOL_C))
     if ctl.walking:      # both stances and standing were built
         assert stances == {walking.BOTH, walking.LEFT, walking.RIGHT}, stances
     if name in COST_BOUND:

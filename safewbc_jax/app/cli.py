@@ -15,6 +15,25 @@ def _cmd_model_info(args) -> int:
     return 0
 
 
+def _cmd_export_c(args) -> int:
+    from safewbc_jax import scenarios
+    from safewbc_jax.control.params import apply_overrides, load_overrides
+    from safewbc_jax.deploy.codegen.export import export_c
+
+    barrier = not args.no_barrier
+    sc = scenarios.get_scenario(args.scenario, barrier, tuple(args.safe_set))
+    if args.speed is not None and sc.gait is None:
+        raise ValueError(f"--speed applies to the walking scenarios, not {args.scenario!r}")
+    params = sc.default_params()
+    if args.params is not None:
+        params = apply_overrides(params, load_overrides(args.params), str(args.params))
+    print(f"[safewbc] {args.scenario}: writing the controller as C ...", file=sys.stderr)
+    e = export_c(sc, args.out, params, barrier=barrier, speed=args.speed)
+    print(f"wrote {e.out}/safewbc_step.c, safewbc_step.h, main.c and Makefile; "
+          f"build and run the example with: make -C {e.out}")
+    return 0
+
+
 def _cmd_run(args) -> int:
     from safewbc_jax.app.runner import format_summary, run_scenario
 
@@ -314,6 +333,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar or messages on "
                    "stderr (errors and the final summary still print)")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("export-c", help="write a scenario's controller as C99: a folder that "
+                       "'make' builds and runs with no Python")
+    p.add_argument("scenario", type=_scenario_arg, metavar="SCENARIO",
+                   help=f"{', '.join(sorted(scenarios.names()))}, or FILE.py:NAME")
+    p.add_argument("--out", required=True, help="the folder to write")
+    p.add_argument("--params", default=None, help="TOML of ControllerParams overrides")
+    p.add_argument("--safe-set", dest="safe_set", action="append", default=[],
+                   metavar="FILE.py:NAME", help="add the SafeSet NAME of a Python file "
+                   "(repeatable)")
+    p.add_argument("--no-barrier", action="store_true",
+                   help="drop the A-ECBF rows: every safe set monitored only")
+    p.add_argument("--speed", type=_finite_float, default=None,
+                   help="walk/push: commanded mean forward speed (m/s)")
+    p.set_defaults(func=_cmd_export_c)
 
     p = sub.add_parser("sweep", help="run a sweep spec (sweeps/*.toml) as chunks of batched "
                        "closed-loop rollouts into a Parquet table; a rerun resumes")

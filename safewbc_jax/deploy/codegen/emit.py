@@ -294,7 +294,7 @@ def _where(eqn) -> str:
 
         return source_info_util.summarize(info)
     except Exception:  # noqa: BLE001 - a location is a courtesy
-        return "unknown location"
+        return ""
 
 
 # ----------------------------------------------------------------------------------- rules
@@ -556,6 +556,21 @@ def _concatenate(em, e, ins):
             em.close(len(idx))
         off += x.shape[dim]
     return [out]
+
+
+@rule("split")
+def _split(em, e, ins):
+    x, axis = ins[0], e.params["axis"]
+    outs, off = [], 0
+    for k, n in enumerate(e.params["sizes"]):
+        out = _out(em, e, k)
+        idx = em.loops(out.shape)
+        src = [f"{i} + {off}" if d == axis else i for d, i in enumerate(idx)]
+        em.w(f"{out.at(flat_index(idx, out.shape))} = {x.at(flat_index(src, x.shape))};")
+        em.close(len(idx))
+        outs.append(out)
+        off += int(n)
+    return outs
 
 
 @rule("stack")
@@ -1166,9 +1181,13 @@ def emit_function(name: str, closed) -> CFunction:
     ...`` and outputs ``T *out0, ...`` are flat arrays of the jaxpr's shapes and dtypes.
     Raises ``UnsupportedPrimitive`` naming the first primitive without a rule."""
     jaxpr = closed.jaxpr
-    for p in sorted(primitives(jaxpr)):
-        if p not in RULES:
-            raise UnsupportedPrimitive(f"primitive {p!r} has no C rule (in {name})")
+    path = _first_unsupported(jaxpr)
+    if path:
+        # where the user's code called it: the innermost equation of the path with a frame
+        # outside JAX (an equation inside a jitted library function has none)
+        where = next((w for w in map(_where, reversed(path)) if w), "no source location")
+        raise UnsupportedPrimitive(f"primitive {path[-1].primitive.name!r} has no C rule "
+                                   f"(called at {where}; in {name})")
     em = Emitter(name)
     ins = [Buf(f"in{k}", ctype(v.aval.dtype), tuple(v.aval.shape), np.dtype(v.aval.dtype),
                const=True) for k, v in enumerate(jaxpr.invars)]
@@ -1214,13 +1233,41 @@ def emit_function(name: str, closed) -> CFunction:
     setup += [f"    {name}_out{k} = out{k};" for k in range(len(jaxpr.outvars))]
     calls = [f"    {name}_part{k}();" for k in range(len(parts))]
     used = set(re.findall(rf"\b{name}_c\d+\b", "\n".join(funcs)))
-    consts = [c for c in em.consts if c.split("[", 1)[0].rsplit(" ", 1)[1] in used]
-    code = "\n".join(consts + decls + ptrs + funcs + [proto + " {", *setup, *calls, "}"])
+    const_decls = [c for c in em.consts if c.split("[", 1)[0].rsplit(" ", 1)[1] in used]
+    code = "\n".join(const_decls + decls + ptrs + funcs + [proto + " {", *setup, *calls, "}"])
     nbytes = sum(size * (8 if ct in ("double", "int64_t", "uint64_t") else
                          4 if ct in ("float", "int32_t", "uint32_t") else 1)
                  for ct, _, size in em.pool.decls)
     return CFunction(name, code + "\n", proto, [v.aval for v in jaxpr.invars],
                      [v.aval for v in jaxpr.outvars], nbytes)
+
+
+def _subjaxprs(eqn):
+    import jax.extend.core as jcore
+
+    for p in eqn.params.values():
+        for sub in (p if isinstance(p, (list, tuple)) else [p]):
+            if isinstance(sub, jcore.ClosedJaxpr):
+                yield sub.jaxpr
+            elif isinstance(sub, jcore.Jaxpr):
+                yield sub
+            elif hasattr(sub, "_fields"):      # custom_linear_solve's jaxprs
+                for s in sub:
+                    if isinstance(s, jcore.ClosedJaxpr):
+                        yield s.jaxpr
+
+
+def _first_unsupported(jaxpr) -> list:
+    """The equations from the top down to the first one (depth first) whose primitive has
+    no rule; [] where every primitive has one."""
+    for e in jaxpr.eqns:
+        if e.primitive.name not in RULES:
+            return [e]
+        for sub in _subjaxprs(e):
+            path = _first_unsupported(sub)
+            if path:
+                return [e, *path]
+    return []
 
 
 def primitives(jaxpr) -> set:

@@ -134,7 +134,9 @@ def export_c(scenario, out, params=None, safe_sets=(), barrier: bool = True,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "safewbc_step.c").write_text(emit.c_file(fns, HEADER))
-    L, m = ctl.compiled.layouts, ctl.model
+    cs = ctl.compiled
+    assert cs is not None      # started above
+    L, m = cs.layouts, ctl.model
     sizes = {"NQ": m.nq, "NV": m.nv, "NU": m.nu, "FIXED": L.fixed.size, "STATE": L.state.size,
              "TALLY": L.tally.size, "MEAS": L.meas.size, "PREP": L.prep.size,
              "SOL": L.sol.size}
@@ -164,10 +166,10 @@ def _header(fns, sizes: dict, scenario: str) -> str:
 def _main(q, v, meas, motor, sizes: dict) -> str:
     return (f'#include <math.h>\n#include <stdio.h>\n#include "{HEADER}"\n\n'
             + _array("Q", q) + _array("V", v) + _array("MEAS", meas)
-            + _array("PYTHON_MOTOR", motor) + f"""
+            + _array("PYTHON_MOTOR", motor) + """
 /* one control step at a stored state: the stand, t = 0; prints the motor torques and
    their largest difference from Python's (XLA's) for the same step */
-int main(void) {{
+int main(void) {
     static double fixed[SWBC_FIXED_SIZE], state[SWBC_STATE_SIZE], tally[SWBC_TALLY_SIZE];
     static double state1[SWBC_STATE_SIZE], tally1[SWBC_TALLY_SIZE];
     static double motor[SWBC_NU], u[SWBC_NU];
@@ -175,14 +177,14 @@ int main(void) {{
     swbc_start(Q, fixed);
     swbc_init(Q, V, state, tally);
     swbc_step(fixed, state, tally, MEAS, state1, tally1, motor, u);
-    for (int i = 0; i < SWBC_NU; ++i) {{
+    for (int i = 0; i < SWBC_NU; ++i) {
         double d = fabs(motor[i] - PYTHON_MOTOR[i]);
         if (!(d <= worst)) worst = d;
         printf("motor[%d] = %.17g\\n", i, motor[i]);
-    }}
+    }
     printf("largest difference from Python's: %.3g N m\\n", worst);
     return worst <= 1e-6 ? 0 : 1;
-}}
+}
 """)
 
 
