@@ -13,7 +13,11 @@ kernels XLA runs for the jitted step (``Controller.kernels``), and the run's fig
 (fell, barrier minima), so that a faster step is seen to be the same controller.
 
     python benchmarks/controller_step.py [--scenarios squat,bow,arms,walk,push]
-        [--duration S] [--cpu N] [--no-tsid] [--json]
+        [--engine c,xla] [--duration S] [--cpu N] [--no-tsid] [--json]
+
+``--engine``: the deployed step generated as C (``deploy.codegen``, the start time then
+includes the generation and the C compile, and a second start, from the build cache, is
+timed too) and/or jitted by XLA, one after the other for each scenario.
 
 Pin to one core (the default: core 0) and keep the machine otherwise idle; the p99 and
 the max are what other processes disturb first.
@@ -48,7 +52,7 @@ def _round(x):
     return a.tolist()
 
 
-def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
+def bench_scenario(name, duration, tsid_step, engine="xla", control_dt=1e-3):
     from safewbc_jax import scenarios
     from safewbc_jax.control import metrics
     from safewbc_jax.control.push import Push
@@ -57,10 +61,11 @@ def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
 
     sc = scenarios.get_scenario(name)
     opts = check_run_options(name, sc, duration=duration)
-    push = (Push.single(opts["push"], opts["push_at"], opts["push_for"])
-            if opts["push"] is not None else None)
-    cfg = RunConfig(sc, duration=opts["duration"], settle=opts["settle"], speed=opts["speed"],
-                    push=push, control_dt=control_dt, count_kernels=True)
+    push = (Push.single(opts.push, opts.push_at, opts.push_for)
+            if opts.push is not None else None)
+    cfg = RunConfig(sc, duration=opts.duration, settle=opts.settle, speed=opts.speed,
+                    push=push, control_dt=control_dt, count_kernels=engine == "xla",
+                    engine=engine)
     tsid_us, tsid_bad = [], [0]
     started = [False]
 
@@ -77,12 +82,12 @@ def bench_scenario(name, duration, tsid_step, control_dt=1e-3):
     t0 = time.perf_counter()
     log, info = run(cfg, sc.default_params(), observer=observer)
     wall = time.perf_counter() - t0
-    kern = info["kernels"]
+    kern = info.get("kernels")
     skip = metrics.LATENCY_SKIP
     lat = log["latency"]
     m = info["metrics"]
     res = {
-        "scenario": name, "steps": int(lat.size), "wall_s": round(wall, 1),
+        "scenario": name, "engine": engine, "steps": int(lat.size), "wall_s": round(wall, 1),
         "compile_s": round(float(info["compile_s"]), 1),
         "command_us": _stats(lat, skip),
         "deadline_misses": metrics.deadline_misses(lat[skip:], control_dt),
@@ -113,12 +118,18 @@ def main(argv=None) -> dict:
                     help="s of motion per scenario (default: each scenario's own)")
     ap.add_argument("--cpu", type=int, default=0, help="pin to this core (-1: no pinning)")
     ap.add_argument("--no-tsid", action="store_true", help="leave TSID out even if installed")
+    ap.add_argument("--engine", default="c,xla",
+                    help="the deployed step's engines, comma-separated, run one after the "
+                    "other for each scenario: c, xla (default: both)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
     bad = [s for s in names if s not in SCENARIOS]
     if bad or not names:
         ap.error(f"--scenarios {args.scenarios!r}: expected names of {', '.join(SCENARIOS)}")
+    engines = [e.strip() for e in args.engine.split(",") if e.strip()]
+    if not engines or any(e not in ("c", "xla") for e in engines):
+        ap.error(f"--engine {args.engine!r}: expected c, xla or c,xla")
     os.environ.setdefault("OMP_NUM_THREADS", "1")     # TSID's OpenMP (before it loads)
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import tsid_anchor
@@ -136,27 +147,43 @@ def main(argv=None) -> dict:
     if not use_tsid and not args.json:
         print("TSID: " + ("left out (--no-tsid)" if args.no_tsid else
                           "not installed (see ../shared/anchors/README.md): no ratios"))
-    for name in names:
-        tstep = (tsid_anchor.TsidStep(str(paths.controller_xml()), contacts.SOLE_LENGTH,
-                                      contacts.SOLE_WIDTH) if use_tsid else None)
-        r = bench_scenario(name, args.duration, tstep)
-        out["scenarios"].append(r)
-        if not args.json:
-            _print(r)
+    for k, name in enumerate(names):
+        # the engines alternate their order from one scenario to the next
+        for engine in (engines if k % 2 == 0 else engines[::-1]):
+            tstep = (tsid_anchor.TsidStep(str(paths.controller_xml()), contacts.SOLE_LENGTH,
+                                          contacts.SOLE_WIDTH) if use_tsid else None)
+            r = bench_scenario(name, args.duration, tstep, engine)
+            if engine == "c":       # a second start: the build found in the cache
+                r["cached_start_s"] = round(_cached_start(name), 2)
+            out["scenarios"].append(r)
+            if not args.json:
+                _print(r)
     if args.json:
         print(json.dumps(out))
     return out
 
 
+def _cached_start(name):
+    """Seconds of ``Controller.start`` with the C engine when the build is cached."""
+    from safewbc_jax.deploy.codegen.export import stand_state
+    from safewbc_jax.deploy.controller import Controller
+
+    q, v = stand_state()
+    return Controller(name, engine="c").start(q, v)
+
+
 def _print(r):
     c, b = r["command_us"], r["breakdown_us"]
     dm = r["deadline_misses"]
-    print(f"{r['scenario']}: {r['steps']} steps, compile {r['compile_s']} s; Controller.step "
+    start = f"start {r['compile_s']} s" + (f" (cached {r['cached_start_s']} s)"
+                                           if "cached_start_s" in r else "")
+    print(f"{r['scenario']} [{r['engine']}]: {r['steps']} steps, {start}; Controller.step "
           f"p50 {c['p50']} us, p99 {c['p99']} us, max {c['max']} us; over "
           f"{dm['period_us']:.0f} us: {dm['count']} ({100 * dm['rate']:.1f}%)")
-    print(f"    jitted step p50 {b['jitted_step']['p50']} us ({r['kernels']['total']} kernels: "
-          + ", ".join(f"{k} {v}" for k, v in r["kernels"].items() if k != "total")
-          + f"), PIQP p50 {b['piqp_solve']['p50']} us, the rest p50 {b['rest_of_step']['p50']} us")
+    kern = ("" if not r["kernels"] else f" ({r['kernels']['total']} kernels: "
+            + ", ".join(f"{k} {v}" for k, v in r["kernels"].items() if k != "total") + ")")
+    print(f"    generated/jitted step p50 {b['jitted_step']['p50']} us{kern}, PIQP p50 "
+          f"{b['piqp_solve']['p50']} us, the rest p50 {b['rest_of_step']['p50']} us")
     if "tsid_us" in r:
         t = r["tsid_us"]
         print(f"    TSID (QP {r['tsid_qp_sizes']}) p50 {t['p50']} us, p99 {t['p99']} us; ours / "

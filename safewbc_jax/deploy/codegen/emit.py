@@ -276,7 +276,7 @@ class Emitter:
                 env[v] = o
                 if isinstance(o, Buf) and o.name in self.pooled:
                     owned.add(v)      # each holds one reference to its storage
-            for v in set(x for x in e.invars if not isinstance(x, jcore.Literal)):
+            for v in dict.fromkeys(x for x in e.invars if not isinstance(x, jcore.Literal)):
                 if last.get(v) == k and v in owned and v not in keep:
                     self.release(env[v])
                     owned.discard(v)
