@@ -174,3 +174,14 @@ def test_no_module_touches_another_objects_private_attributes():
                              and node.value.id in ("self", "cls"))):
                 found.append(f"{path.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)}")
     assert not found, "\n".join(found)
+
+
+def test_every_package_folder_is_installed():
+    """A non-editable install (the quick start's ``pip install .``) ships exactly the
+    packages pyproject.toml lists: each folder of the package must be among them."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())
+                 ["tool"]["setuptools"]["packages"])
+    found = {_module_name(p) for p in PKG.rglob("__init__.py")}
+    assert found <= listed, f"not in pyproject.toml's packages: {sorted(found - listed)}"
