@@ -185,3 +185,11 @@ def test_every_package_folder_is_installed():
                  ["tool"]["setuptools"]["packages"])
     found = {_module_name(p) for p in PKG.rglob("__init__.py")}
     assert found <= listed, f"not in pyproject.toml's packages: {sorted(found - listed)}"
+
+
+def test_the_controller_keeps_one_robot_only():
+    """``deploy/controller.py`` is one robot's controller over a ``CompiledStep`` (issue 51:
+    at most 350 lines); the compiled step and its lanes live in ``deploy/compiled.py``."""
+    text = (PKG / "deploy" / "controller.py").read_text()
+    assert len(text.splitlines()) <= 350
+    assert "def admit" not in text and "def finish" not in text and "staticmethod" not in text

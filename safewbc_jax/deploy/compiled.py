@@ -79,6 +79,29 @@ def resolve_engine(engine: str) -> str:
     return engine
 
 
+@dataclasses.dataclass(frozen=True)
+class HostRecord:
+    """A good step, for logs: the control step's ``StepRecord`` (numpy), the state the QP
+    saw (v with the rigid swing-leg rates), the domain, X or None, the solver's
+    ``SolveResult`` (x over the full X, NaN where failed; eq_residual of the full QP, the
+    other residuals of the reduced QP PIQP solved; None where the measurement was
+    refused), the wall times of the QP's preparation and of the solve (us)."""
+
+    step: Any
+    q: np.ndarray
+    v: np.ndarray
+    domain: Any          # walking.Domain, or None
+    x: np.ndarray | None
+    solve: Any
+    t_qp: float
+    t_solve: float
+
+    @property
+    def tau(self) -> float:
+        return float(self.step.tau)
+
+
+
 class Layouts(NamedTuple):
     """The flat-vector layout of each argument and result of the compiled step."""
 

@@ -31,36 +31,14 @@ from safewbc_jax.control import metrics
 from safewbc_jax.control import step as control_step
 from safewbc_jax.control.params import as_float64
 from safewbc_jax.control.step import Measurement
-from safewbc_jax.deploy.compiled import Command, CompiledStep, LaneState, resolve_engine
+from safewbc_jax.deploy.compiled import (Command, CompiledStep, HostRecord, LaneState,
+                                         resolve_engine)
 from safewbc_jax.deploy.checks import check_barrier_poles, check_state
 from safewbc_jax.deploy.motors import MotorMap
 from safewbc_jax.model import robot
 from safewbc_jax.solvers import host
 from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
 from safewbc_jax.solvers.result import row
-
-
-@dataclasses.dataclass(frozen=True)
-class HostRecord:
-    """A good step, for logs: the control step's ``StepRecord`` (numpy), the state the QP
-    saw (v with the rigid swing-leg rates), the domain, X or None, the solver's
-    ``SolveResult`` (x over the full X, NaN where failed; eq_residual of the full QP, the
-    other residuals of the reduced QP PIQP solved; None where the measurement was
-    refused), the wall times of the QP's preparation and of the solve (us)."""
-
-    step: Any
-    q: np.ndarray
-    v: np.ndarray
-    domain: Any          # walking.Domain, or None
-    x: np.ndarray | None
-    solve: Any
-    t_qp: float
-    t_solve: float
-
-    @property
-    def tau(self) -> float:
-        return float(self.step.tau)
-
 
 
 class Controller:
