@@ -61,3 +61,18 @@ def build_state_map(sim_model, ctrl_model) -> StateMap:
         act_idx.append(ac)
     return StateMap(np.array(qpos_idx), np.array(qvel_idx), np.array(act_idx),
                     sim_model.actuator_gear[:, 0].copy())
+
+
+def load_stand():
+    """(simulation MjModel, controller MjModel, StateMap, MjData at the simulation model's
+    "stand" keyframe, forward kinematics done)."""
+    import mujoco
+
+    from safewbc_jax.base import paths
+
+    ms = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
+    mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
+    d = mujoco.MjData(ms)
+    mujoco.mj_resetDataKeyframe(ms, d, ms.key("stand").id)
+    mujoco.mj_forward(ms, d)
+    return ms, mc, build_state_map(ms, mc), d

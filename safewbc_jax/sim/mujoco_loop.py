@@ -19,7 +19,6 @@ from functools import partial
 import jax
 import numpy as np
 
-from safewbc_jax.base import paths
 from safewbc_jax.control import metrics
 from safewbc_jax.model import robot, statemap
 from safewbc_jax.control.step import Measurement
@@ -89,14 +88,7 @@ class ContactSensing:
 
 def load_at_stand():
     """(simulation model, controller MjModel, RobotModel, StateMap, MjData at ``stand``)."""
-    import mujoco
-
-    ms = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
-    mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
-    sm = statemap.build_state_map(ms, mc)
-    d = mujoco.MjData(ms)
-    mujoco.mj_resetDataKeyframe(ms, d, ms.key("stand").id)
-    mujoco.mj_forward(ms, d)
+    ms, mc, sm, d = statemap.load_stand()
     return ms, mc, robot.from_mujoco(mc), sm, d
 
 

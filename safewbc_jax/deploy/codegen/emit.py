@@ -267,11 +267,7 @@ class Emitter:
         for k, e in enumerate(jaxpr.eqns):
             self.cut()
             ins = [read(v) for v in e.invars]
-            rule = RULES.get(e.primitive.name)
-            if rule is None:
-                raise UnsupportedPrimitive(f"primitive {e.primitive.name!r} has no C rule "
-                                           f"({_where(e)})")
-            outs = rule(self, e, ins)
+            outs = RULES[e.primitive.name](self, e, ins)     # emit_function checked them
             for v, o in zip(e.outvars, outs):
                 env[v] = o
                 if isinstance(o, Buf) and o.name in self.pooled:
@@ -1268,26 +1264,6 @@ def _first_unsupported(jaxpr) -> list:
             if path:
                 return [e, *path]
     return []
-
-
-def primitives(jaxpr) -> set:
-    """The names of the primitives of ``jaxpr`` and of every jaxpr inside it."""
-    import jax.extend.core as jcore
-
-    out = set()
-    for e in jaxpr.eqns:
-        out.add(e.primitive.name)
-        for p in e.params.values():
-            for sub in (p if isinstance(p, (list, tuple)) else [p]):
-                if isinstance(sub, jcore.ClosedJaxpr):
-                    out |= primitives(sub.jaxpr)
-                elif isinstance(sub, jcore.Jaxpr):
-                    out |= primitives(sub)
-                elif hasattr(sub, "_fields"):      # custom_linear_solve's jaxprs
-                    for s in sub:
-                        if isinstance(s, jcore.ClosedJaxpr):
-                            out |= primitives(s.jaxpr)
-    return out
 
 
 def c_file(functions: list[CFunction], header_name: str | None = None) -> str:

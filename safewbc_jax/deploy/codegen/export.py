@@ -49,17 +49,10 @@ class Export:
 
 def stand_state() -> tuple[np.ndarray, np.ndarray]:
     """(q, v) of the controller model at the simulator's "stand" keyframe."""
-    import mujoco
-
-    from safewbc_jax.base import paths
     from safewbc_jax.model import statemap
 
-    ms = mujoco.MjModel.from_xml_path(str(paths.scene_xml()))
-    mc = mujoco.MjModel.from_xml_path(str(paths.controller_xml()))
-    d = mujoco.MjData(ms)
-    mujoco.mj_resetDataKeyframe(ms, d, ms.key("stand").id)
-    mujoco.mj_forward(ms, d)
-    q, v = statemap.build_state_map(ms, mc).to_controller(d.qpos, d.qvel)
+    _, _, sm, d = statemap.load_stand()
+    q, v = sm.to_controller(d.qpos, d.qvel)
     return np.asarray(q, float), np.asarray(v, float)
 
 
