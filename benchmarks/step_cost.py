@@ -62,7 +62,7 @@ def parts(name, q0, v0) -> dict:
         return controller.build_qp(m, sc, params, t, q, v, tau, start, in_contact)[0]
 
     qp = jax.jit(build)(terms, q, v, tau)
-    bounded, blockdiag = reduce.bounded_variables(qp), reduce.p_block_diagonal(qp)
+    bounded, blockdiag = reduce.bounded_variables(qp), reduce.p_structure(qp)
     rows = {
         "kinematics (FK of every body)": (lambda q: robot.forward_kinematics(m, q), q),
         "body motion (velocities, bias accelerations)":

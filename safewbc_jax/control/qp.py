@@ -18,6 +18,7 @@ This module is pure algebra on arrays; ``controller`` computes the terms.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from safewbc_jax.solvers.problem import QP
 
@@ -32,6 +33,22 @@ def task_cost(task_jacobians, task_drifts, y_star, weights, nv):
         p = p + 2.0 * j.T @ wj
         g = g + 2.0 * wj.T @ (jd - ys)
     return p, g
+
+
+def _diag(d):
+    """diag(d) as d times a constant identity (no iota in the program)."""
+    return np.eye(d.shape[0], dtype=d.dtype) * d[None, :]
+
+
+def _block_diagonal(blocks):
+    """The block-diagonal matrix of square ``blocks``, by concatenation."""
+    sizes = [b.shape[0] for b in blocks]
+    rows = []
+    for k, b in enumerate(blocks):
+        left = jnp.zeros((sizes[k], sum(sizes[:k])), b.dtype)
+        right = jnp.zeros((sizes[k], sum(sizes[k + 1:])), b.dtype)
+        rows.append(jnp.concatenate([left, b, right], axis=1))
+    return jnp.concatenate(rows, axis=0)
 
 
 def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_q,
@@ -61,8 +78,11 @@ def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_
     G = jnp.concatenate([g_lam, g_bar], axis=0)
     hv = jnp.concatenate([h_lambda, -barrier_b])
     soft = jnp.concatenate([soft_lambda, jnp.ones(barrier_rows.shape[0], dtype)])
-    # pads, not .at[].add/.set: a scatter is one more kernel, and IREE rejects it
-    P = jnp.diag(2.0 * gamma) + jnp.pad(task_P, ((0, n - nv), (0, n - nv)))
+    # P block by block (concatenations, no scatter, no n x n iota): the elimination
+    # slices its q_ddot, u and lambda blocks back out, and a slice of a concatenation is
+    # the operand itself, not a recomputation of all of P
+    P = _block_diagonal([task_P + _diag(2.0 * gamma[:nv]), _diag(2.0 * gamma[nv:nv + nu]),
+                         _diag(2.0 * gamma[nv + nu:])])
     q = jnp.concatenate([task_q, jnp.zeros(n - nv, dtype)])
     inf = jnp.full(nv, jnp.inf, dtype)
     lb = jnp.concatenate([-inf, -u_max, jnp.full(nc, -jnp.inf, dtype)])

@@ -363,11 +363,12 @@ def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState
     """prepare -> the JAX QP solver (``jax_qp.solve``, fallback policy included; the block
     sizes from the QP) -> conclude: the whole step in JAX (the batched path). The
     controller's P has no cross blocks (``qp.assemble``: Gamma diagonal, the tasks on
-    q_ddot), so only its diagonal blocks enter the elimination."""
+    q_ddot; its u and lambda blocks are the diagonal Gamma), so only its diagonal blocks
+    enter the elimination, the lambda block as its diagonal."""
     from safewbc_jax.solvers import jax_qp
 
     state, prep, qpm = prepare(ctx, params, start, run, state, meas)
-    res = jax_qp.solve(qpm, p_blockdiag=True, settings=ctx.qp_settings)
+    res = jax_qp.solve(qpm, p_blockdiag="diagonal", settings=ctx.qp_settings)
     tally, out = conclude(ctx, run, tally, prep, res)
     return state, tally, out
 

@@ -181,7 +181,7 @@ class CompiledStep:
         # static data of the elimination, from the QP itself (its block sizes, which of
         # its variables outside u are bounded, whether P has cross blocks)
         bounded = reduce.bounded_variables(qp0)
-        p_blockdiag = reduce.p_block_diagonal(qp0)
+        p_blockdiag = reduce.p_structure(qp0)
         self.nx = int(qp0.P.shape[0])
         prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
         L = self.layouts = Layouts(*(FlatTree(t) for t in (fixed, state0, tally0, meas0, prep0,

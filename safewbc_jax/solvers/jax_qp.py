@@ -62,7 +62,8 @@ from safewbc_jax.solvers.blas import blas_threads
 from safewbc_jax.solvers.ipm import interior_point, scale_problem
 from safewbc_jax.solvers.policy import Attempt
 from safewbc_jax.solvers.polish import polish
-from safewbc_jax.solvers.reduce import has_controller_structure, p_block_diagonal
+from safewbc_jax.solvers.reduce import (has_controller_structure, p_block_diagonal,
+                                        p_structure)
 from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NAMES, FALLBACK_NONE,
                                         FALLBACK_RELAXED, SolveResult)
 from safewbc_jax.solvers.settings import Settings, full_float32, settings_for
@@ -153,7 +154,7 @@ def _relaxed_skipped(qp: QP) -> Attempt:
     return policy.skipped(jnp.zeros(qp.P.shape[0], qp.P.dtype), jnp)
 
 
-def _reduce_controller(qp: QP, bounded, p_blockdiag: bool):
+def _reduce_controller(qp: QP, bounded, p_blockdiag: bool | str):
     red, lift = reduce.eliminate(qp, bounded, p_blockdiag, xp=jnp, la=reduce.BATCHED)
     return red, lift, jnp.ones((), bool)
 
@@ -173,7 +174,7 @@ _settings = settings_for
 # ---------------------------------------------------------------------- public API
 
 def solve(qp: QP, *, bounded=None, dtype=None, settings: Settings | None = None,
-          p_blockdiag: bool = False) -> Result:
+          p_blockdiag: bool | str = False) -> Result:
     """One controller QP (X = [q_ddot (nv), u (nu), lambda], the block sizes the QP
     carries: a QP from ``qp.assemble``; ValueError for a QP without them, which
     ``solve_generic`` solves) through the reduced problem in u; pure JAX, jit/vmap-able
@@ -181,7 +182,8 @@ def solve(qp: QP, *, bounded=None, dtype=None, settings: Settings | None = None,
     ``bounded``: static indices outside u with finite bounds
     (``reduce.bounded_variables``; none for the controller's QP). ``p_blockdiag``: P has
     no cross terms between q_ddot, u and lambda (true of the controller's QP; static:
-    only P's diagonal blocks are then used, ``p_block_diagonal`` checks it)."""
+    only P's diagonal blocks are then used, ``p_block_diagonal`` checks it); "diagonal":
+    also its u and lambda blocks are diagonal (``reduce.p_structure``)."""
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.asarray(qp.P).dtype
     st = _settings(dtype, settings)
     qp = _cast(qp, dtype)
@@ -253,10 +255,10 @@ def _resolve_chunk(chunk, batch: int):
 
 
 def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None = None,
-                p_blockdiag: bool | None = None, chunk: int | str | None = "auto") -> Result:
+                p_blockdiag: bool | str | None = None, chunk: int | str | None = "auto") -> Result:
     """``solve`` over a leading batch dimension of every field, jitted (compiled once per
     shape, block sizes, dtype, settings, structure flags and chunk). ``p_blockdiag`` None:
-    checked on the data (``p_block_diagonal``) when it is concrete, else False.
+    checked on the data (``reduce.p_structure``) when it is concrete, else False.
 
     ``chunk``: solve the batch at most ``chunk`` QPs at a time, the chunks one after the
     other in the same jitted call (``chunking.chunked``: equal chunks, padded by copies of
@@ -275,9 +277,9 @@ def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None 
     dtype = jnp.dtype(dtype) if dtype is not None else jnp.asarray(qps.P).dtype
     b = tuple(int(i) for i in (np.zeros(0, int) if bounded is None else np.asarray(bounded)))
     if p_blockdiag is None:
-        p_blockdiag = _concrete(qps.P) and p_block_diagonal(qps)
+        p_blockdiag = _concrete(qps.P) and p_structure(qps)
     return _batched("controller", b, dtype, _settings(dtype, settings),
-                    bool(p_blockdiag), _resolve_chunk(chunk, qps.P.shape[0]))(qps)
+                    p_blockdiag if p_blockdiag == "diagonal" else bool(p_blockdiag), _resolve_chunk(chunk, qps.P.shape[0]))(qps)
 
 
 def _concrete(a) -> bool:

@@ -28,7 +28,9 @@ lambda, if any are finite, are turned into rows of G (``bounded_variables``).
 factorisations (``HOST``: scipy on the host; ``JAX``: jax.scipy, for jit; ``BATCHED``:
 ``lapack_batched``, safe under vmap). N's identity block is never multiplied, and with
 ``p_blockdiag`` (P without q_ddot/u/lambda cross blocks, as the controller's;
-``p_block_diagonal`` checks it) only P's diagonal blocks are.
+``p_block_diagonal`` checks it) only P's diagonal blocks are; with ``p_blockdiag=
+"diagonal"`` (as ``p_structure`` finds for the controller's QP, whose u and lambda blocks
+are the diagonal Gamma) the lambda block is applied as its diagonal.
 
 ``reduce_generic``: a QP without that structure (JAX solver, ``jax_qp.solve_generic``):
 x = Y R^-T b + Z y with Z an orthonormal basis of null(A) from a complete QR of A' (the
@@ -100,7 +102,13 @@ def bounded_variables(qp: QP) -> np.ndarray:
     return idx[(idx < nv) | (idx >= nv + nu)]
 
 
-def eliminate(qp: QP, bounded=None, p_blockdiag: bool = False, *, xp=jnp,
+def _diagonal(a):
+    """The diagonal of square ``a`` as a strided slice of its flat view (numpy or JAX; no
+    gather, no iota)."""
+    return a.reshape(-1)[::a.shape[0] + 1]
+
+
+def eliminate(qp: QP, bounded=None, p_blockdiag: bool | str = False, *, xp=jnp,
               la: Factorisations = JAX) -> tuple[QP, Reduction]:
     """The reduced QP in u (no block sizes, no equality rows) and the map back
     X = x0 + N u (module docstring); one QP (vmap it for a batch)."""
@@ -129,7 +137,9 @@ def eliminate(qp: QP, bounded=None, p_blockdiag: bool = False, *, xp=jnp,
     yl = xp.concatenate([y, lam], axis=0)
     x0 = xp.concatenate([x0q, xp.zeros(nu, dt), lam0])
     if p_blockdiag:                   # [x0 | N]' P [x0 | N] and N' q in one product
-        py = xp.concatenate([P[iq, iq] @ y, P[il, il] @ lam], axis=0)
+        p_ll = P[il, il]
+        plam = (_diagonal(p_ll)[:, None] * lam if p_blockdiag == "diagonal" else p_ll @ lam)
+        py = xp.concatenate([P[iq, iq] @ y, plam], axis=0)
         ql = xp.concatenate([qp.q[iq], qp.q[il]])[:, None]
         hh_ = yl.T @ xp.concatenate([py, ql], axis=1)
         p_r = hh_[1:, 1:-1] + P[iu, iu]
@@ -162,13 +172,13 @@ def eliminate(qp: QP, bounded=None, p_blockdiag: bool = False, *, xp=jnp,
     return red, Reduction(x0=x0, N=N)
 
 
-def eliminate_equalities(qp: QP, bounded=None, p_blockdiag: bool = False):
+def eliminate_equalities(qp: QP, bounded=None, p_blockdiag: bool | str = False):
     """``eliminate`` in JAX (jax.scipy factorisations; for jit, not for large vmaps:
     those take ``BATCHED``)."""
     return eliminate(qp, bounded, p_blockdiag, xp=jnp, la=JAX)
 
 
-def eliminate_equalities_np(qp: QP, bounded=None, p_blockdiag: bool = False):
+def eliminate_equalities_np(qp: QP, bounded=None, p_blockdiag: bool | str = False):
     """``eliminate`` in numpy/scipy on the host (a handful of LAPACK calls on the host
     cost less than their XLA CPU dispatch)."""
     qp = qp.with_arrays(lambda a: np.asarray(a))
@@ -198,6 +208,19 @@ def has_controller_structure(qp: QP) -> bool:
         return False
     M = A[..., :nv, :nv]
     return bool(np.allclose(M, np.swapaxes(M, -1, -2), rtol=1e-10, atol=1e-12))
+
+
+def p_structure(qp: QP) -> bool | str:
+    """Host-side check (concrete P, one QP or a batch) of what ``eliminate`` may assume of
+    P: "diagonal" (no cross blocks, and the u and lambda blocks diagonal), True (no cross
+    blocks) or False."""
+    if not p_block_diagonal(qp):
+        return False
+    P = np.asarray(qp.P)
+    nv = qp.blocks.nv
+    rest = P[..., nv:, nv:]
+    off = rest - rest * np.eye(rest.shape[-1])
+    return "diagonal" if not np.any(off) else True
 
 
 def p_block_diagonal(qp: QP) -> bool:
@@ -269,4 +292,4 @@ def reduce_generic(qp: QP) -> tuple[QP, Reduction, jax.Array]:
 
 __all__ = ["Reduction", "Factorisations", "JAX", "BATCHED", "bounded_variables", "eliminate",
            "eliminate_equalities", "eliminate_equalities_np", "expand",
-           "has_controller_structure", "p_block_diagonal", "reduce_generic"]
+           "has_controller_structure", "p_block_diagonal", "p_structure", "reduce_generic"]
