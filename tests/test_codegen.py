@@ -38,6 +38,9 @@ def _with_nan(x):
     return x
 
 
+SPARSE = np.where(rng.random((6, 5)) < 0.3, rng.standard_normal((6, 5)), 0.0)
+SPARSE[2] = 0.0                                  # an empty row
+SPARSE3 = np.where(rng.random((3, 2, 5)) < 0.3, 1.0, 0.0)
 tril = lambda a: jnp.tril(a) + 3 * jnp.eye(a.shape[-1])  # noqa: E731
 CASES = {
     # elementwise, implicit broadcast of size-1 dims, scalars, NaN
@@ -85,6 +88,10 @@ CASES = {
     "dot": (lambda a, b, c: (a @ b, jnp.einsum("bij,bjk->bik", c, c),
                              jnp.einsum("ij,ij->i", a, a), jnp.tensordot(c, a, ([2], [0]))),
             [_r(4, 4), _r(4, 3), _r(2, 4, 4)]),
+    # a constant lhs mostly zeros: contracted over its nonzeros only
+    "dot_sparse_const": (lambda x, y: (jnp.asarray(SPARSE) @ x, jnp.asarray(SPARSE) @ y,
+                                       jnp.einsum("ijk,k->ij", jnp.asarray(SPARSE3), y)),
+                         [_r(5, 4), _r(5)]),
     # indexing
     "gather": (lambda x, i: (x[i], jnp.take(x, i, axis=1, mode="clip"),
                              jnp.take(x, i, axis=0, mode="fill", fill_value=-1.0),
@@ -199,3 +206,36 @@ def test_literals_are_exact():
         assert float.fromhex(emit.c_literal(x, np.float64).strip("()")) == x
     assert emit.c_literal(np.nan, np.float64) == "NAN"
 
+
+
+def test_a_sparse_constant_is_contracted_over_its_nonzeros_with_the_same_bits():
+    """The emitted loop visits the constant's nonzeros only (its CSR arrays are in the C),
+    and gives the dense product's bits: the same products, added in the same order."""
+    x = _r(5, 7)
+    fn = emit.emit_function("sp", jax.make_jaxpr(lambda x: jnp.asarray(SPARSE) @ x)(x))
+    nnz = int(np.count_nonzero(SPARSE))
+    assert f"[{nnz}] = {{" in fn.code and f"[{SPARSE.shape[0] + 1}] = {{" in fn.code
+    lib = build.load(build.build(emit.c_file([fn]))[0])
+    (got,) = build.CCall(lib, fn)(x)
+    want = np.zeros((6, 7))
+    for i in range(6):
+        for k in range(5):
+            want[i] += SPARSE[i, k] * x[k]
+    np.testing.assert_array_equal(got, want)
+
+
+def test_an_output_may_be_the_array_of_an_input():
+    """The caller may pass one array as an input and an output (a state updated in
+    place). An output computed before the last read of that input is not written in
+    place: here the first output is computed before the input is read again."""
+    import ctypes
+
+    f = lambda s: (jnp.concatenate([s[1:], s[:1]]), s * 3.0)  # noqa: E731
+    s0 = _r(6)
+    fn = emit.emit_function("inplace", jax.make_jaxpr(f)(s0))
+    lib = build.load(build.build(emit.c_file([fn]))[0])
+    s, out1 = s0.copy(), np.zeros(6)
+    ptr = lambda a: a.ctypes.data_as(ctypes.c_void_p)  # noqa: E731
+    getattr(lib, "inplace")(ptr(s), ptr(s), ptr(out1))
+    np.testing.assert_array_equal(s, np.roll(s0, -1))
+    np.testing.assert_array_equal(out1, s0 * 3.0)

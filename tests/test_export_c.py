@@ -51,7 +51,7 @@ def test_export_c_builds_with_make_and_prints_pythons_command(tmp_path, capsys):
     assert "malloc" not in src and "free(" not in src
     # a robot computer: no Python on the PATH, only the compiler and make
     env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
-    r = subprocess.run(["make", "-C", str(out), "CFLAGS=-O2 -std=c99 -Wall -Wextra -Werror"],
+    r = subprocess.run(["make", "-C", str(out), "CFLAGS=-O3 -std=c99 -Wall -Wextra -Werror"],
                        capture_output=True, text=True, env=env)
     assert r.returncode == 0, r.stdout + r.stderr
     printed = np.array([float(x) for x in re.findall(r"motor\[\d+\] = (\S+)", r.stdout)])

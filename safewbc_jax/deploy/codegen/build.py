@@ -22,7 +22,7 @@ import numpy as np
 
 from safewbc_jax.deploy.codegen.emit import CFunction
 
-CFLAGS = ("-O2", "-std=c99", "-fPIC", "-shared", "-fno-math-errno")
+CFLAGS = ("-O3", "-std=c99", "-fPIC", "-shared", "-fno-math-errno")
 _CTYPES = {"double": ctypes.c_double, "float": ctypes.c_float, "int32_t": ctypes.c_int32,
            "int64_t": ctypes.c_int64, "uint8_t": ctypes.c_uint8, "uint32_t": ctypes.c_uint32}
 

@@ -79,6 +79,7 @@ class Buf:
     shape: tuple
     dtype: Any
     const: bool = False
+    value: Any = field(default=None, repr=False, compare=False)  # a constant's numbers
 
     @property
     def size(self) -> int:
@@ -168,6 +169,7 @@ class Emitter:
         self.n_tmp = 0
         self.pooled: dict[str, str] = {}         # buffer name -> its ctype, for the pool
         self.refs: dict[str, int] = {}           # buffer name -> the arrays it holds
+        self.direct: dict = {}                   # top-level var -> the output it is written to
 
     # -- output
     def w(self, line: str) -> None:
@@ -212,7 +214,7 @@ class Emitter:
         name = f"{self.prefix}_c{self.n_tmp}"
         vals = ", ".join(c_literal(x, a.dtype) for x in a.ravel()) or "0"
         self.consts.append(f"static const {ct} {name}[{max(a.size, 1)}] = {{{vals}}};")
-        return Buf(name, ct, tuple(a.shape), a.dtype, const=True)
+        return Buf(name, ct, tuple(a.shape), a.dtype, const=True, value=a)
 
     # -- loops
     def loops(self, shape) -> list[str]:
@@ -307,7 +309,8 @@ def rule(*names):
 
 
 def _out(em: Emitter, e, k: int = 0) -> Buf:
-    return em.new_buf(e.outvars[k].aval)
+    direct = em.direct.get(e.outvars[k])
+    return direct if direct is not None else em.new_buf(e.outvars[k].aval)
 
 
 def _elementwise(em: Emitter, e, ins, expr: Callable[..., str]) -> list:
@@ -666,15 +669,79 @@ def _argmax(em, e, ins):
     return [out]
 
 
+def _sparse_rows(em, e, a, lf, lc, lb) -> tuple[Buf, Buf, Buf] | None:
+    """For a constant lhs at most half nonzero, contracted along one dim, with no batch
+    dims: its nonzeros row by row (CSR: row starts, contraction indices, values; a row is
+    a flat index over the lhs's free dims), as constants; else None."""
+    if a.value is None or lb or len(lc) != 1 or a.dtype != np.float64:
+        return None
+    m = np.moveaxis(np.asarray(a.value, np.float64), lc[0], -1).reshape(-1, a.shape[lc[0]])
+    nz = m != 0
+    if nz.sum() > 0.5 * m.size:
+        return None
+    rows, cols = np.nonzero(nz)
+    start = np.concatenate([[0], np.cumsum(nz.sum(axis=1))]).astype(np.int64)
+    return (em.const_buf(start), em.const_buf(cols.astype(np.int64)),
+            em.const_buf(m[rows, cols]))
+
+
 @rule("dot_general")
 def _dot_general(em, e, ins):
+    """out[batch, lhs free, rhs free] = sum over the contracted dims, each entry's sum in
+    the contracted dims' order, in double. Where the rhs's free dims are its innermost
+    and there are some (the rhs not contracted along its last dim), the rhs free loop
+    is innermost (row updates out[.., j] += a * b[.., j], along contiguous memory, which
+    the C compiler vectorises); otherwise one dot product per entry. Either order adds
+    the same products to each entry in the same order, so the two give the same bits.
+    A constant lhs that is mostly zeros (a static summation matrix) is contracted over
+    its nonzeros only (``_sparse_rows``): the same bits for finite rhs entries, as adding
+    a product 0 * b changes no sum."""
     out, a, b = _out(em, e), ins[0], ins[1]
     (lc, rc), (lb, rb) = e.params["dimension_numbers"]
     lf = [d for d in range(len(a.shape)) if d not in lc and d not in lb]
     rf = [d for d in range(len(b.shape)) if d not in rc and d not in rb]
-    idx = em.loops(out.shape)
     nb = len(lb)
     ai, bi = [""] * len(a.shape), [""] * len(b.shape)
+    rows = (out.dtype == np.float64 and rf and int(np.prod([b.shape[d] for d in rf])) > 1
+            and rf == list(range(len(b.shape) - len(rf), len(b.shape))))
+    sparse = _sparse_rows(em, e, a, lf, lc, lb) if out.dtype == np.float64 else None
+
+    def contraction(free_idx):
+        """Open the contraction loop(s); returns (lhs value expression, loops opened)."""
+        if sparse is None:
+            cidx = em.loops([a.shape[d] for d in lc])
+            for x, y, i in zip(lc, rc, cidx):
+                ai[x] = bi[y] = i
+            return a.at(flat_index(ai, a.shape)), len(cidx)
+        start, col, val = sparse
+        r = flat_index(free_idx, [a.shape[d] for d in lf]) if lf else "0"
+        p = em.tmp("p")
+        em.w(f"for (int64_t {p} = {start.at(r)}; {p} < {start.at(f'({r}) + 1')}; ++{p}) {{")
+        em.depth += 1
+        bi[rc[0]] = col.at(p)
+        return val.at(p), 1
+
+    if rows:
+        outer = em.loops(out.shape[:nb + len(lf)])
+        for k, (x, y) in enumerate(zip(lb, rb)):
+            ai[x] = bi[y] = outer[k]
+        for k, d in enumerate(lf):
+            ai[d] = outer[nb + k]
+        inner = [out.shape[nb + len(lf) + k] for k in range(len(rf))]
+        jdx = em.loops(inner)
+        em.w(f"{out.at(flat_index(outer + jdx, out.shape))} = 0;")
+        em.close(len(jdx))
+        aval, nc = contraction(outer[nb:])
+        f = em.tmp("f")
+        em.w(f"double {f} = (double){aval};")
+        jdx = em.loops(inner)
+        for d, j in zip(rf, jdx):
+            bi[d] = j
+        em.w(f"{out.at(flat_index(outer + jdx, out.shape))} += {f} * "
+             f"(double){b.at(flat_index(bi, b.shape))};")
+        em.close(len(jdx) + nc + len(outer))
+        return [out]
+    idx = em.loops(out.shape)
     for k, (x, y) in enumerate(zip(lb, rb)):
         ai[x] = bi[y] = idx[k]
     for k, d in enumerate(lf):
@@ -683,12 +750,9 @@ def _dot_general(em, e, ins):
         bi[d] = idx[nb + len(lf) + k]
     acc = em.tmp("acc")
     em.w(f"double {acc} = 0;")
-    cidx = em.loops([a.shape[d] for d in lc])
-    for x, y, i in zip(lc, rc, cidx):
-        ai[x] = bi[y] = i
-    em.w(f"{acc} += (double){a.at(flat_index(ai, a.shape))} * "
-         f"(double){b.at(flat_index(bi, b.shape))};")
-    em.close(len(cidx))
+    aval, nc = contraction(idx[nb:nb + len(lf)])
+    em.w(f"{acc} += (double){aval} * (double){b.at(flat_index(bi, b.shape))};")
+    em.close(nc)
     em.w(f"{out.at(flat_index(idx, out.shape))} = ({out.ctype}){acc};")
     em.close(len(idx))
     return [out]
@@ -1172,6 +1236,39 @@ static void swbc_trisolve(int64_t n, int64_t m, int64_t k, const double *a, doub
 """
 
 
+ALIASING = frozenset(("convert_element_type", "reshape", "squeeze", "expand_dims"))
+"""Primitives whose result may be a view of their operand's storage (``Emitter.alias``)."""
+
+
+def _direct_outputs(jaxpr) -> dict:
+    """{outvar: its output pointer as a Buf} for the outputs that the equation computing
+    them may write in place: computed by a top-level equation that gives a fresh array,
+    after the last equation that reads an input or an array that may be on an input's
+    storage (the caller may pass one array as an input and an output). The others are
+    copied out at the end."""
+    import jax.extend.core as jcore
+
+    on_input = set(jaxpr.invars)
+    last = -1
+    for k, e in enumerate(jaxpr.eqns):
+        reads = [v for v in e.invars if not isinstance(v, jcore.Literal) and v in on_input]
+        if reads:
+            last = k
+            if e.primitive.name in ALIASING or any(
+                    isinstance(p, (jcore.Jaxpr, jcore.ClosedJaxpr)) or isinstance(p, tuple)
+                    for p in e.params.values()):
+                on_input.update(e.outvars)
+    made = {v: e for k, e in enumerate(jaxpr.eqns) if k > last for v in e.outvars}
+    out: dict = {}
+    for k, v in enumerate(jaxpr.outvars):
+        e = made.get(v)
+        if (isinstance(v, jcore.Literal) or v in out or e is None or e.primitive.name in ALIASING
+                or any(isinstance(p, (jcore.Jaxpr, jcore.ClosedJaxpr)) for p in e.params.values())):
+            continue
+        out[v] = Buf(f"out{k}", ctype(v.aval.dtype), tuple(v.aval.shape), np.dtype(v.aval.dtype))
+    return out
+
+
 def emit_function(name: str, closed) -> CFunction:
     """``closed`` (a ClosedJaxpr) as the C function ``name``: its inputs ``const T *in0,
     ...`` and outputs ``T *out0, ...`` are flat arrays of the jaxpr's shapes and dtypes.
@@ -1188,6 +1285,7 @@ def emit_function(name: str, closed) -> CFunction:
     ins = [Buf(f"in{k}", ctype(v.aval.dtype), tuple(v.aval.shape), np.dtype(v.aval.dtype),
                const=True) for k, v in enumerate(jaxpr.invars)]
     consts = [em.const_buf(c) for c in closed.consts]
+    em.direct = _direct_outputs(jaxpr)
     outs = em.run(jaxpr, ins, consts)
     # an output that is an input (or a view of one) is copied out of it first: the caller
     # may pass the same array as that input and as an output (a state updated in place)

@@ -183,7 +183,7 @@ int main(void) {
 
 MAKEFILE = """# Builds the example and runs it: make (or make example; make clean)
 CC ?= cc
-CFLAGS ?= -O2 -std=c99 -Wall -Wextra
+CFLAGS ?= -O3 -std=c99 -Wall -Wextra
 LDLIBS = -lm
 
 run: example
