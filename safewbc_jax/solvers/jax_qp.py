@@ -279,7 +279,8 @@ def solve_batch(qps: QP, *, bounded=None, dtype=None, settings: Settings | None 
     if p_blockdiag is None:
         p_blockdiag = _concrete(qps.P) and p_structure(qps)
     return _batched("controller", b, dtype, _settings(dtype, settings),
-                    p_blockdiag if p_blockdiag == "diagonal" else bool(p_blockdiag), _resolve_chunk(chunk, qps.P.shape[0]))(qps)
+                    p_blockdiag if p_blockdiag == "diagonal" else bool(p_blockdiag),
+                    _resolve_chunk(chunk, qps.P.shape[0]))(qps)
 
 
 def _concrete(a) -> bool:
