@@ -130,6 +130,11 @@ class LaneState:
     prev_t: float | None = None
     last_times: tuple[float, float] = (np.nan, np.nan)
     last_qp: tuple[Any, int] | None = None
+    # the C engine's prepare writes into one of two output sets, the one not holding the
+    # last good step's QP (``CompiledStep.prepare_lane``); each set's QPs unpacked once
+    outputs: list = dataclasses.field(default_factory=list)
+    views: list = dataclasses.field(default_factory=list)
+    slot: int = 0
 
     def __post_init__(self) -> None:
         self.last_u = np.zeros(self.nu)
@@ -140,6 +145,7 @@ class LaneState:
         self.last_u = np.zeros(self.nu)
         self.prev_t, self.last_qp = None, None
         self.last_times = (np.nan, np.nan)
+        self.outputs, self.views, self.slot = [], [], 0
         host.reset(self.solver)
 
     def sibling(self) -> LaneState:
@@ -250,6 +256,13 @@ class CompiledStep:
         return self.layouts.state.pack(state), self.layouts.tally.pack(tally)
 
     @property
+    def ok_index(self) -> int:
+        """Where ``Prepared.ok`` (the step's state tests passed) sits in the flat Prepared
+        vector."""
+        flat = self.layouts.prep
+        return int(flat.unpack(np.arange(flat.size, dtype=float)).ok)
+
+    @property
     def tau_index(self) -> int:
         """Where tau sits in the flat Prepared vector."""
         flat = self.layouts.prep
@@ -276,6 +289,37 @@ class CompiledStep:
             return np.concatenate([q, v, f, [float(meas.t)]])
         except (TypeError, ValueError):
             return None
+
+    def prepare_lane(self, lane: LaneState, fixed, state, flat) -> tuple:
+        """``prepare`` for one lane: (state, Prepared, packed QPs, their unpacked QPs with
+        a leading axis of 1, or None). The C engine writes into the lane's output set
+        ``lane.slot`` (two sets, made at the first call), whose QPs are unpacked once:
+        the set of the last good step stays as it was until another step is good
+        (``solve`` moves ``lane.slot`` on), so ``lane.last_qp`` stays true."""
+        if self.engine != "c":
+            return (*self.prepare(fixed, state, flat), None)
+        if not lane.outputs:
+            lane.outputs = [self.prepare.outputs() for _ in range(2)]
+            lane.views = [self.unpack_qp(o[2][None]) for o in lane.outputs]
+        new, prep, packed = self.prepare(fixed, state, flat, out=lane.outputs[lane.slot])
+        return new, prep, packed, lane.views[lane.slot]
+
+    def admit_fast(self, lane: LaneState, meas: Measurement) -> np.ndarray | None:
+        """The measurement's flat vector where the host-only tests pass (shapes, types, t
+        advancing), counting the step; None where they fail, for ``admit_one``. The state
+        tests run inside ``prepare`` (``Prepared.ok``); ``refused`` names a refusal."""
+        flat = self.flat_measurement(meas)
+        if flat is None or (lane.prev_t is not None and not flat[-1] > lane.prev_t):
+            return None
+        lane.steps += 1
+        return flat
+
+    def refused(self, lane: LaneState, meas: Measurement) -> str:
+        """Why ``prepare`` refused a measurement that ``admit_fast`` let in
+        (``check_measurement``), counted as a bad measurement."""
+        lane.bad_measurements += 1
+        reason = check_measurement(meas, self.walking, self.nq, self.nv)
+        return reason if reason != "ok" else "refused by the step's state tests"
 
     # -- the host side of a step
     def admit_one(self, lane: LaneState, meas: Measurement) -> tuple[np.ndarray | None, str]:
@@ -315,18 +359,20 @@ class CompiledStep:
         return list(flat), reasons
 
     def solve(self, lanes: list[LaneState], packed: np.ndarray, ts, t_in: float,
-              t_step: float) -> tuple[list[Command], np.ndarray, SolveResult, np.ndarray,
-                                      np.ndarray]:
+              t_step: float, unpacked: tuple | None = None
+              ) -> tuple[list[Command], np.ndarray, SolveResult, np.ndarray, np.ndarray]:
         """The host side of a step for lanes with accepted measurements, from the jitted
         prepare's packed QPs (leading axis L): each lane's reduced QP by its own solver
         (``solvers.host.solve_lanes``), X = x0 + N u, the usable test, the held-torque
         rule, the motor map and each lane's counters.
 
+        ``unpacked``: ``unpack_qp(packed)`` where it is at hand (``prepare_lane``).
+
         Returns:
             (the Commands; conclude's flat solve records (L, .); the SolveResult, x over
             the full X and NaN where not usable, eq_residual of the full QP; X; usable).
         """
-        qpm, red, rmap, checks = self.unpack_qp(packed)
+        qpm, red, rmap, checks = self.unpack_qp(packed) if unpacked is None else unpacked
         t1 = time.perf_counter()
         res = host.solve_lanes([lane.solver for lane in lanes], red, checks)
         x = reduce.expand(res.x, rmap)
@@ -352,6 +398,7 @@ class CompiledStep:
         for j, lane in enumerate(lanes):
             fb = int(res.fallback[j])
             lane.last_times, lane.last_qp = times, (qpm, j)
+            lane.slot ^= 1                # keep this step's QP: the next writes the other
             lane.qp_failed += fb == FALLBACK_FAILED
             lane.fallbacks += fb == FALLBACK_RELAXED
             lane.last_u, lane.prev_t = u[j], ts[j]

@@ -83,13 +83,24 @@ class CCall:
         self.out_ptrs = [o.ctypes.data_as(ctypes.c_void_p) for o in self.outs]
         self.copy = copy
 
-    def __call__(self, *args):
+    def outputs(self) -> tuple:
+        """A fresh set of output arrays, for ``__call__``'s ``out``."""
+        return tuple(np.zeros(a.shape, a.dtype) for a in self.fn.out_avals)
+
+    def __call__(self, *args, out: tuple | None = None):
+        """The function on ``args``; ``out``: arrays of ``outputs``'s shapes to write the
+        results into (and return), instead of the preallocated ones. An output array may
+        be one of the inputs (the C function allows it)."""
         ins = []
         for a, dt, shape in zip(args, self.in_dtypes, self.in_shapes):
             a = np.ascontiguousarray(a, dtype=dt)
             if a.size != int(np.prod(shape, dtype=np.int64)):
                 raise ValueError(f"{self.fn.name}: an input of shape {a.shape}, expected {shape}")
             ins.append(a)
+        if out is not None:
+            self.c(*[a.ctypes.data_as(ctypes.c_void_p) for a in ins],
+                   *[o.ctypes.data_as(ctypes.c_void_p) for o in out])
+            return out
         self.c(*[a.ctypes.data_as(ctypes.c_void_p) for a in ins], *self.out_ptrs)
         return tuple(o.copy() for o in self.outs) if self.copy else tuple(self.outs)
 
