@@ -22,7 +22,8 @@ import numpy as np
 
 from safewbc_jax.deploy.codegen.emit import CFunction
 
-CFLAGS = ("-O3", "-std=c99", "-fPIC", "-shared", "-fno-math-errno")
+CFLAGS = ("-O3", "-std=c99", "-fPIC", "-fno-math-errno")
+MAX_UNITS = 8
 _CTYPES = {"double": ctypes.c_double, "float": ctypes.c_float, "int32_t": ctypes.c_int32,
            "int64_t": ctypes.c_int64, "uint8_t": ctypes.c_uint8, "uint32_t": ctypes.c_uint32}
 
@@ -58,14 +59,39 @@ def build(source: str, native: bool = False) -> tuple[Path, bool]:
         src = Path(tmp) / "step.c"
         src.write_text(source)
         so = Path(tmp) / "step.so"
-        r = subprocess.run([cc, *flags, "-o", str(so), str(src), "-lm"], capture_output=True,
-                           text=True)
-        if r.returncode != 0:
-            raise RuntimeError(f"{cc} failed on the generated step:\n{r.stderr[-4000:]}")
+        _compile(cc, flags, src, so, units())
         part = out.with_suffix(f".{os.getpid()}.part")
         shutil.copyfile(so, part)
         os.replace(part, out)          # atomic: a concurrent start sees all or nothing
     return out, True
+
+
+def units() -> int:
+    """How many translation units a build compiles in parallel: one per CPU this process
+    may run on, at most ``MAX_UNITS``."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:             # not on Linux
+        n = os.cpu_count() or 1
+    return max(1, min(n, MAX_UNITS))
+
+
+def _compile(cc: str, flags: list, src: Path, so: Path, n: int) -> None:
+    """``src`` as ``n`` translation units compiled at once (``emit.UNITS``), linked into
+    the shared library ``so``; RuntimeError with the compiler's message on a failure."""
+    objs = [src.with_name(f"unit{k}.o") for k in range(n)]
+    unit = ([f"-DSWBC_UNITS={n}", f"-DSWBC_UNIT={k}"] if n > 1 else [] for k in range(n))
+    procs = [subprocess.Popen([cc, *flags, *u, "-c", "-o", str(o), str(src)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for u, o in zip(unit, objs)]
+    errs = [p.communicate()[1] for p in procs]
+    if any(p.returncode for p in procs):
+        err = next(e for p, e in zip(procs, errs) if p.returncode)
+        raise RuntimeError(f"{cc} failed on the generated step:\n{err[-4000:]}")
+    r = subprocess.run([cc, *flags, "-shared", "-o", str(so), *map(str, objs), "-lm"],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"{cc} failed to link the generated step:\n{r.stderr[-4000:]}")
 
 
 class CCall:
