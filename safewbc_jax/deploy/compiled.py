@@ -299,7 +299,7 @@ class CompiledStep:
         if self.engine != "c":
             return (*self.prepare(fixed, state, flat), None)
         if not lane.outputs:
-            lane.outputs = [self.prepare.outputs() for _ in range(2)]
+            lane.outputs = [self.prepare.outputs() for _ in range(2)]  # type: ignore[attr-defined]
             lane.views = [self.unpack_qp(o[2][None]) for o in lane.outputs]
         new, prep, packed = self.prepare(fixed, state, flat, out=lane.outputs[lane.slot])
         return new, prep, packed, lane.views[lane.slot]
