@@ -17,6 +17,7 @@ import jax
 import numpy as np
 import pytest
 
+from safewbc_jax.control import qp as qp_assembly
 from safewbc_jax.control import step as control_step, walking
 from safewbc_jax.model import spatial
 from safewbc_jax.control.step import Measurement
@@ -107,6 +108,9 @@ def test_deployed_step_builds_the_pure_functions_qp(stand, name):
             _close(f"{name} state {k}: controller state", a, b)
         if bounded is None:
             bounded = reduce.bounded_variables(qp_ref)
+        # the structure the deployed elimination takes as static (qp.P_STRUCTURE)
+        assert bounded.size == 0 and reduce.p_structure(qp_ref) == qp_assembly.P_STRUCTURE
+        # the reference: the elimination with P as a dense matrix, on the pure functions' QP
         red_ref, rmap_ref = reduce.eliminate_equalities_np(qp_ref, bounded)
         for f in FIELDS:
             worst = max(worst, _close(f"{name} state {k}: reduced QP {f}", getattr(red, f),

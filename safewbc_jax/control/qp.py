@@ -23,6 +23,14 @@ import numpy as np
 from safewbc_jax.solvers.problem import QP
 
 
+P_STRUCTURE = "diagonal"
+"""What ``assemble``'s P is by construction, as ``solvers.reduce.p_structure`` names it: no
+cross blocks between q_ddot, u and lambda, and diagonal u and lambda blocks (Gamma). Its
+bounds on q_ddot and lambda are infinite, so no variable outside u is bounded
+(``reduce.bounded_variables`` is empty). The solvers' elimination takes both as static
+data; ``tests/test_deploy_same_qp.py`` holds them on every scenario's QP."""
+
+
 def task_cost(task_jacobians, task_drifts, y_star, weights, nv):
     """Hessian and gradient (on q_ddot) of sum_o ||J_o q_ddot + J_o_dot v - y*_o||^2_{W_o}
     in the 1/2 x'Px + q'x form: P = 2 sum J'WJ, q = 2 sum J'W (J_dot v - y*)."""

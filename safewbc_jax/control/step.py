@@ -39,6 +39,7 @@ import numpy as np
 
 from safewbc_jax.control import barriers, terms as controller, metrics
 from safewbc_jax.control import gait as gait_mod
+from safewbc_jax.control import qp as qp_assembly
 from safewbc_jax.model import contacts, robot
 from safewbc_jax.control import scenario as scenario_mod
 from safewbc_jax.solvers.problem import Blocks
@@ -368,7 +369,7 @@ def step_jax(ctx: Context, params, start, run: RunValues, state: ControllerState
     from safewbc_jax.solvers import jax_qp
 
     state, prep, qpm = prepare(ctx, params, start, run, state, meas)
-    res = jax_qp.solve(qpm, p_blockdiag="diagonal", settings=ctx.qp_settings)
+    res = jax_qp.solve(qpm, p_blockdiag=qp_assembly.P_STRUCTURE, settings=ctx.qp_settings)
     tally, out = conclude(ctx, run, tally, prep, res)
     return state, tally, out
 

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from safewbc_jax.control import qp as qp_assembly
 from safewbc_jax.control import step as control_step
 from safewbc_jax.control.step import Measurement, state_ok
 from safewbc_jax.deploy.checks import check_measurement
@@ -183,13 +184,13 @@ class CompiledStep:
         self.nq, self.nv, self.nu = ctx.model.nq, ctx.model.nv, ctx.model.nu
         state0, tally0 = control_step.init_state(ctx, q, v, np, np.float64)
         meas0 = Measurement(q, v, 0.0, np.zeros(2))
-        qp0 = jax.jit(lambda *a: control_step.prepare(ctx, *a)[2])(*fixed, state0, meas0)
-        # static data of the elimination, from the QP itself (its block sizes, which of
-        # its variables outside u are bounded, whether P has cross blocks)
-        bounded = reduce.bounded_variables(qp0)
-        p_blockdiag = reduce.p_structure(qp0)
+        # the shapes of what prepare gives (one trace, nothing compiled); the elimination's
+        # static data is the QP's structure by construction (qp.P_STRUCTURE): no bounded
+        # variable outside u, P block-diagonal with diagonal u and lambda blocks
+        _, prep0, qp0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a), *fixed,
+                                       state0, meas0)
+        bounded, p_blockdiag = np.zeros(0, int), qp_assembly.P_STRUCTURE
         self.nx = int(qp0.P.shape[0])
-        prep0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a)[1], *fixed, state0, meas0)
         L = self.layouts = Layouts(*(FlatTree(t) for t in (fixed, state0, tally0, meas0, prep0,
                                                           failed(self.nx))))
         self.no_solution = self.flat_solution(failed(self.nx))

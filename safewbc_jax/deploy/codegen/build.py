@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import shutil
 import subprocess
@@ -80,7 +81,10 @@ def _compile(cc: str, flags: list, src: Path, so: Path, n: int) -> None:
     """``src`` as ``n`` translation units compiled at once (``emit.UNITS``), linked into
     the shared library ``so``; RuntimeError with the compiler's message on a failure."""
     objs = [src.with_name(f"unit{k}.o") for k in range(n)]
-    unit = ([f"-DSWBC_UNITS={n}", f"-DSWBC_UNIT={k}"] if n > 1 else [] for k in range(n))
+    # several units share their buffers as hidden globals: direct addressing, as the
+    # static ones of one unit have (through the GOT they cost compile time and speed)
+    unit = ([f"-DSWBC_UNITS={n}", f"-DSWBC_UNIT={k}", "-fvisibility=hidden"] if n > 1 else []
+            for k in range(n))
     procs = [subprocess.Popen([cc, *flags, *u, "-c", "-o", str(o), str(src)],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for u, o in zip(unit, objs)]
@@ -103,11 +107,29 @@ class CCall:
         self.fn = fn
         self.c = getattr(lib, fn.name)
         self.c.restype = None
+        # plain addresses (ints) in, as void pointers: no ctypes object per argument
+        self.c.argtypes = [ctypes.c_void_p] * (len(fn.in_avals) + len(fn.out_avals))
         self.in_dtypes = [np.dtype(a.dtype) for a in fn.in_avals]
         self.in_shapes = [tuple(a.shape) for a in fn.in_avals]
+        self.in_sizes = [math.prod(s) for s in self.in_shapes]
         self.outs = [np.zeros(a.shape, a.dtype) for a in fn.out_avals]
-        self.out_ptrs = [o.ctypes.data_as(ctypes.c_void_p) for o in self.outs]
+        self.out_ptrs = [o.ctypes.data for o in self.outs]
+        self._out_sets: dict = {}
         self.copy = copy
+
+    def _addresses(self, out: tuple) -> list:
+        """The addresses of an output set, checked and kept at its first use (the set is
+        kept alive with them, so its id stays its own)."""
+        got = self._out_sets.get(id(out))
+        if got is None:
+            for o, want in zip(out, self.outs):
+                if o.size != want.size or o.dtype != want.dtype or not o.flags.c_contiguous:
+                    raise ValueError(f"{self.fn.name}: an output array of shape {o.shape} "
+                                     f"and dtype {o.dtype}, expected {want.shape} {want.dtype}")
+            if len(self._out_sets) >= 8:        # a caller making new sets: keep no old
+                self._out_sets.clear()
+            got = self._out_sets[id(out)] = (out, [o.ctypes.data for o in out])
+        return got[1]
 
     def outputs(self) -> tuple:
         """A fresh set of output arrays, for ``__call__``'s ``out``."""
@@ -118,16 +140,15 @@ class CCall:
         results into (and return), instead of the preallocated ones. An output array may
         be one of the inputs (the C function allows it)."""
         ins = []
-        for a, dt, shape in zip(args, self.in_dtypes, self.in_shapes):
+        for a, dt, shape, size in zip(args, self.in_dtypes, self.in_shapes, self.in_sizes):
             a = np.ascontiguousarray(a, dtype=dt)
-            if a.size != int(np.prod(shape, dtype=np.int64)):
+            if a.size != size:
                 raise ValueError(f"{self.fn.name}: an input of shape {a.shape}, expected {shape}")
             ins.append(a)
         if out is not None:
-            self.c(*[a.ctypes.data_as(ctypes.c_void_p) for a in ins],
-                   *[o.ctypes.data_as(ctypes.c_void_p) for o in out])
+            self.c(*[a.ctypes.data for a in ins], *self._addresses(out))
             return out
-        self.c(*[a.ctypes.data_as(ctypes.c_void_p) for a in ins], *self.out_ptrs)
+        self.c(*[a.ctypes.data for a in ins], *self.out_ptrs)
         return tuple(o.copy() for o in self.outs) if self.copy else tuple(self.outs)
 
 

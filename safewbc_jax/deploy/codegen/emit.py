@@ -1333,7 +1333,8 @@ def emit_function(name: str, closed) -> CFunction:
     used = set(re.findall(rf"\b{name}_c\d+\b", "\n".join(funcs)))
     const_decls = [c for c in em.consts if c.split("[", 1)[0].rsplit(" ", 1)[1] in used]
     code = "\n".join(const_decls + decls + ptrs + protos + funcs
-                      + ["#if SWBC_MAIN", proto + " {", *setup, *calls, "}", "#endif"])
+                      + ["#if SWBC_MAIN", f"SWBC_API {proto} {{", *setup, *calls, "}",
+                         "#endif"])
     nbytes = sum(size * (8 if ct in ("double", "int64_t", "uint64_t") else
                          4 if ct in ("float", "int32_t", "uint32_t") else 1)
                  for ct, _, size in em.pool.decls)
@@ -1378,7 +1379,9 @@ UNITS = """
 #define SWBC_PART static
 #define SWBC_HAS(k) 1
 #define SWBC_MAIN 1
+#define SWBC_API
 #else
+#define SWBC_API __attribute__((visibility("default")))  /* built -fvisibility=hidden */
 #if SWBC_UNIT == 0
 #define SWBC_SHARED
 #else
