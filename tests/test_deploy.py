@@ -16,6 +16,7 @@ from safewbc_jax.deploy import checks as deploy
 from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.deploy.motors import MotorMap
 from safewbc_jax.model import statemap
+from safewbc_jax.solvers.problem import FIELDS
 from safewbc_jax.solvers.result import failed
 from safewbc_jax.solvers.status import SolveStatus
 
@@ -223,6 +224,26 @@ def test_bad_measurement_holds_the_last_good_torque(squat, stand, case):
     nxt = ctl.step(Measurement(*stand, ctl.control_dt))
     assert nxt.measurement == "ok"
     assert ctl.record.tau == pytest.approx(ctl.control_dt - ctl.scenario.settle)
+
+
+@pytest.mark.slow
+def test_a_refused_step_leaves_the_last_good_qp(squat, stand):
+    """A refused step's prepare runs too, and builds its QP at the last good state and
+    time: ``last_qp`` (which views the C engine's output arrays, rewritten by every
+    prepare) stays the good step's, whatever the refused measurement's time or state."""
+    ctl = squat
+    ctl.reset()
+    t_late = ctl.scenario.settle + 1.0
+    ctl.step(Measurement(*stand, 0.0))               # the clock starts
+    ctl.step(Measurement(*stand, t_late))
+    good = ctl.last_qp()
+    q, v, f = _bad(stand, "nan_q")
+    for meas in (Measurement(*stand, t_late - 0.5),           # refused for its time
+                 Measurement(q, v, t_late + 0.5, f)):         # refused for its state
+        cmd = ctl.step(meas)
+        assert cmd.fallback == "held", cmd
+        for name in FIELDS:
+            np.testing.assert_array_equal(getattr(ctl.last_qp(), name), getattr(good, name))
 
 
 @pytest.mark.slow

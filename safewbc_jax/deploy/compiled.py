@@ -131,11 +131,10 @@ class LaneState:
     prev_t: float | None = None
     last_times: tuple[float, float] = (np.nan, np.nan)
     last_qp: tuple[Any, int] | None = None
-    # the C engine's prepare writes into one of two output sets, the one not holding the
-    # last good step's QP (``CompiledStep.prepare_lane``); each set's QPs unpacked once
-    outputs: list = dataclasses.field(default_factory=list)
-    views: list = dataclasses.field(default_factory=list)
-    slot: int = 0
+    # the C engine's prepare writes into the lane's own output arrays, whose QPs are
+    # unpacked once (``CompiledStep.prepare_lane``)
+    outputs: tuple = ()
+    views: Any = None
 
     def __post_init__(self) -> None:
         self.last_u = np.zeros(self.nu)
@@ -146,7 +145,7 @@ class LaneState:
         self.last_u = np.zeros(self.nu)
         self.prev_t, self.last_qp = None, None
         self.last_times = (np.nan, np.nan)
-        self.outputs, self.views, self.slot = [], [], 0
+        self.outputs, self.views = (), None
         host.reset(self.solver)
 
     def sibling(self) -> LaneState:
@@ -293,17 +292,17 @@ class CompiledStep:
 
     def prepare_lane(self, lane: LaneState, fixed, state, flat) -> tuple:
         """``prepare`` for one lane: (state, Prepared, packed QPs, their unpacked QPs with
-        a leading axis of 1, or None). The C engine writes into the lane's output set
-        ``lane.slot`` (two sets, made at the first call), whose QPs are unpacked once:
-        the set of the last good step stays as it was until another step is good
-        (``solve`` moves ``lane.slot`` on), so ``lane.last_qp`` stays true."""
+        a leading axis of 1, or None). The C engine writes into the lane's output arrays
+        (made at the first call), whose QPs are unpacked once. ``lane.last_qp`` views
+        them: a refused measurement's step rewrites them with the same QP, as prepare
+        builds it at the last good state and time (``test_deploy`` holds this)."""
         if self.engine != "c":
             return (*self.prepare(fixed, state, flat), None)
         if not lane.outputs:
-            lane.outputs = [self.prepare.outputs() for _ in range(2)]  # type: ignore[attr-defined]
-            lane.views = [self.unpack_qp(o[2][None]) for o in lane.outputs]
-        new, prep, packed = self.prepare(fixed, state, flat, out=lane.outputs[lane.slot])
-        return new, prep, packed, lane.views[lane.slot]
+            lane.outputs = self.prepare.outputs()  # type: ignore[attr-defined]
+            lane.views = self.unpack_qp(lane.outputs[2][None])
+        new, prep, packed = self.prepare(fixed, state, flat, out=lane.outputs)
+        return new, prep, packed, lane.views
 
     def admit_fast(self, lane: LaneState, meas: Measurement) -> np.ndarray | None:
         """The measurement's flat vector where the host-only tests pass (shapes, types, t
@@ -399,7 +398,6 @@ class CompiledStep:
         for j, lane in enumerate(lanes):
             fb = int(res.fallback[j])
             lane.last_times, lane.last_qp = times, (qpm, j)
-            lane.slot ^= 1                # keep this step's QP: the next writes the other
             lane.qp_failed += fb == FALLBACK_FAILED
             lane.fallbacks += fb == FALLBACK_RELAXED
             lane.last_u, lane.prev_t = u[j], ts[j]
