@@ -239,3 +239,18 @@ def test_an_output_may_be_the_array_of_an_input():
     getattr(lib, "inplace")(ptr(s), ptr(s), ptr(out1))
     np.testing.assert_array_equal(s, np.roll(s0, -1))
     np.testing.assert_array_equal(out1, s0 * 3.0)
+
+
+def test_constants_are_folded_and_contiguous_slices_of_inputs_are_views():
+    """Equations on constants alone (an identity's rows, an iota, their sum) are computed
+    at generation (no loop for them in the C), and a contiguous slice of an input is
+    read where it lies (no copy loop): two loops remain, the product and the sum."""
+    def f(x):
+        c = jnp.eye(4)[0:3] + lax.broadcasted_iota(jnp.float64, (3, 4), 1)
+        return x[2:5] * 2.0 + c
+    x = _r(6, 4)
+    fn = emit.emit_function("fold", jax.make_jaxpr(f)(x))
+    assert fn.code.count("for (") == 2, fn.code
+    lib = build.load(build.build(emit.c_file([fn]))[0])
+    (got,) = build.CCall(lib, fn)(x)
+    np.testing.assert_array_equal(got, np.asarray(jax.jit(f)(x)))

@@ -96,6 +96,7 @@ class Lit:
     text: str
     shape: tuple = ()
     dtype: Any = None
+    value: Any = field(default=None, repr=False, compare=False)
 
     @property
     def size(self) -> int:
@@ -263,13 +264,16 @@ class Emitter:
 
         def read(v):
             if isinstance(v, jcore.Literal):
-                return Lit(c_literal(v.val, v.aval.dtype), (), np.dtype(v.aval.dtype))
+                return Lit(c_literal(v.val, v.aval.dtype), (), np.dtype(v.aval.dtype),
+                           np.asarray(v.val, v.aval.dtype))
             return env[v]
 
         for k, e in enumerate(jaxpr.eqns):
             self.cut()
             ins = [read(v) for v in e.invars]
-            outs = RULES[e.primitive.name](self, e, ins)     # emit_function checked them
+            outs = _fold(self, e, ins)
+            if outs is None:
+                outs = RULES[e.primitive.name](self, e, ins)  # emit_function checked them
             for v, o in zip(e.outvars, outs):
                 env[v] = o
                 if isinstance(o, Buf) and o.name in self.pooled:
@@ -283,6 +287,86 @@ class Emitter:
                     self.release(o)
                     owned.discard(v)
         return [read(v) for v in jaxpr.outvars]
+
+
+# ------------------------------------------------------------------- constant folding
+
+FOLD_MAX = 1 << 14
+"""The largest result (elements) a constant equation is folded into: above, it is
+computed at run time (a big broadcast of a literal costs less to fill than to store)."""
+
+
+def _bcast(x, shape, dims):
+    s = [1] * len(shape)
+    for j, d in enumerate(dims):
+        s[d] = x.shape[j]
+    return np.broadcast_to(x.reshape(s), shape)
+
+
+def _iota_np(dtype, shape, dimension, **_):
+    s = [1] * len(shape)
+    s[dimension] = shape[dimension]
+    return np.broadcast_to(np.arange(shape[dimension]).reshape(s), shape).astype(dtype)
+
+
+def _select_np(which, *cases):
+    shape = np.broadcast_shapes(np.shape(which), *(np.shape(c) for c in cases))
+    w = np.broadcast_to(np.asarray(which).astype(np.int64), shape)
+    return np.choose(w, [np.broadcast_to(c, shape) for c in cases])
+
+
+_FOLD: dict[str, Callable] = {
+    "broadcast_in_dim": lambda x, shape, broadcast_dimensions, **_: _bcast(
+        x, shape, broadcast_dimensions),
+    "slice": lambda x, start_indices, limit_indices, strides, **_: x[tuple(
+        slice(a, b, c) for a, b, c in zip(start_indices, limit_indices,
+                                           strides or (1,) * x.ndim))],
+    "squeeze": lambda x, dimensions, **_: np.squeeze(x, axis=tuple(dimensions)),
+    "reshape": lambda x, new_sizes, dimensions=None, **_: (
+        x.reshape(new_sizes) if dimensions is None else None),
+    "transpose": lambda x, permutation, **_: np.transpose(x, permutation),
+    "concatenate": lambda *xs, dimension, **_: np.concatenate(xs, axis=dimension),
+    "iota": lambda dtype, shape, dimension, **_: _iota_np(dtype, shape, dimension),
+    "select_n": lambda *xs, **_: _select_np(*xs),
+    "add": lambda a, b, **_: a + b, "sub": lambda a, b, **_: a - b,
+    "mul": lambda a, b, **_: a * b, "neg": lambda a, **_: -a,
+    "max": lambda a, b, **_: np.maximum(a, b), "min": lambda a, b, **_: np.minimum(a, b),
+    "eq": lambda a, b, **_: a == b, "ne": lambda a, b, **_: a != b,
+    "lt": lambda a, b, **_: a < b, "le": lambda a, b, **_: a <= b,
+    "gt": lambda a, b, **_: a > b, "ge": lambda a, b, **_: a >= b,
+    "and": lambda a, b, **_: np.bitwise_and(a, b), "or": lambda a, b, **_: np.bitwise_or(a, b),
+    "not": lambda a, **_: np.invert(a),
+}
+"""Primitives evaluated at generation time where every operand is a constant, in numpy:
+the same IEEE operations, in the jaxpr's dtypes (ints wrap in both; ``convert`` below)."""
+
+
+def _fold(em: "Emitter", e, ins) -> list | None:
+    """The results of ``e`` as constants where all its operands are constants with known
+    numbers and its primitive folds (``_FOLD``, or a conversion that is exact in C's
+    sense too: not float to integer); else None (emitted as code)."""
+    name = e.primitive.name
+    if (name not in _FOLD and name != "convert_element_type") or any(
+            getattr(x, "value", None) is None for x in ins):
+        return None
+    out = e.outvars[0].aval
+    if len(e.outvars) != 1 or math.prod(out.shape) > FOLD_MAX:
+        return None
+    vals = [np.asarray(x.value) for x in ins]
+    if name == "convert_element_type":
+        dst = np.dtype(e.params["new_dtype"])
+        if vals[0].dtype.kind == "f" and dst.kind in "iu":
+            return None
+        got = vals[0].astype(dst) if dst != np.bool_ else vals[0] != 0
+    else:
+        with np.errstate(all="ignore"):
+            got = _FOLD[name](*vals, **e.params)
+    if got is None:
+        return None
+    got = np.asarray(got)
+    if got.shape != tuple(out.shape):
+        return None
+    return [em.const_buf(np.ascontiguousarray(got.astype(out.dtype)))]
 
 
 def _where(eqn) -> str:
@@ -492,11 +576,28 @@ def _transpose(em, e, ins):
     return [out]
 
 
+def _contiguous_offset(shape, start, out_shape) -> int | None:
+    """The flat offset of a unit-stride slice of a row-major array where its elements are
+    one contiguous run (every dim before the last partial one of size 1), else None."""
+    partial = [d for d in range(len(shape)) if out_shape[d] != shape[d]]
+    if partial and any(out_shape[d] != 1 for d in range(partial[-1])):
+        return None
+    return sum(int(a) * k for a, k in zip(start, strides(shape)))
+
+
 @rule("slice")
 def _slice(em, e, ins):
-    out, x = _out(em, e), ins[0]
+    x = ins[0]
     start = e.params["start_indices"]
     st = e.params["strides"] or (1,) * len(start)
+    shape = tuple(int(d) for d in e.outvars[0].aval.shape)
+    if isinstance(x, Buf) and x.const and all(k == 1 for k in st):
+        # a read-only array (an input, a constant): a contiguous slice is a view of it
+        off = _contiguous_offset(x.shape, start, shape)
+        if off is not None:
+            return [Buf(f"({x.name} + {off})" if off else x.name, x.ctype, shape, x.dtype,
+                        const=True)]
+    out = _out(em, e)
     idx = em.loops(out.shape)
     src = [f"{s} + {i}*{k}" for s, i, k in zip(start, idx, st)]
     em.w(f"{out.at(flat_index(idx, out.shape))} = {x.at(flat_index(src, x.shape))};")
@@ -1236,7 +1337,7 @@ static void swbc_trisolve(int64_t n, int64_t m, int64_t k, const double *a, doub
 """
 
 
-ALIASING = frozenset(("convert_element_type", "reshape", "squeeze", "expand_dims"))
+ALIASING = frozenset(("convert_element_type", "reshape", "squeeze", "expand_dims", "slice"))
 """Primitives whose result may be a view of their operand's storage (``Emitter.alias``)."""
 
 
@@ -1290,7 +1391,7 @@ def emit_function(name: str, closed) -> CFunction:
     # an output that is an input (or a view of one) is copied out of it first: the caller
     # may pass the same array as that input and as an output (a state updated in place)
     for k, o in enumerate(outs):
-        if isinstance(o, Buf) and o.name.startswith("in"):
+        if isinstance(o, Buf) and o.name.lstrip("(").startswith("in"):
             b = em.new_buf(jaxpr.outvars[k].aval)
             em.copy(b, o)
             outs[k] = b
