@@ -183,27 +183,25 @@ class CompiledStep:
         self.nq, self.nv, self.nu = ctx.model.nq, ctx.model.nv, ctx.model.nu
         state0, tally0 = control_step.init_state(ctx, q, v, np, np.float64)
         meas0 = Measurement(q, v, 0.0, np.zeros(2))
-        # the shapes of what prepare gives (one trace, nothing compiled); the elimination's
-        # static data is the QP's structure by construction (qp.P_STRUCTURE): no bounded
-        # variable outside u, P block-diagonal with diagonal u and lambda blocks
-        _, prep0, qp0 = jax.eval_shape(lambda *a: control_step.prepare(ctx, *a), *fixed,
-                                       state0, meas0)
+        # the elimination's static data is the QP's structure by construction
+        # (qp.P_STRUCTURE): no bounded variable outside u, P block-diagonal with diagonal u
+        # and lambda blocks
         bounded, p_blockdiag = np.zeros(0, int), qp_assembly.P_STRUCTURE
-        self.nx = int(qp0.P.shape[0])
-        L = self.layouts = Layouts(*(FlatTree(t) for t in (fixed, state0, tally0, meas0, prep0,
-                                                          failed(self.nx))))
-        self.no_solution = self.flat_solution(failed(self.nx))
+        F = [FlatTree(t) for t in (fixed, state0, tally0, meas0)]   # fixed, state, tally, meas
         qp_packer, out_packer = Packer(), Packer()
+        traced: dict = {}             # the Prepared layout and nx, from the first trace
 
         def prepare(fixed, state, meas):
             state, prep, qpm = control_step.prepare(
-                ctx, *L.fixed.unpack(fixed, jnp), L.state.unpack(state, jnp),
-                L.meas.unpack(meas, jnp))
+                ctx, *F[0].unpack(fixed, jnp), F[1].unpack(state, jnp), F[3].unpack(meas, jnp))
             red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
-            return (L.state.pack(state, jnp), L.prep.pack(prep, jnp),
+            flat = traced.setdefault("prep", FlatTree(prep))
+            traced.setdefault("nx", int(qpm.P.shape[-1]))
+            return (F[1].pack(state, jnp), flat.pack(prep, jnp),
                     qp_packer.pack((qpm, red, rmap, policy.checks(red, jnp))))
 
         def conclude(fixed, tally, prep, sol):
+            L = self.layouts
             prep = L.prep.unpack(prep, jnp)
             tally, out = control_step.conclude(ctx, L.fixed.unpack(fixed, jnp)[2],
                                                L.tally.unpack(tally, jnp), prep,
@@ -215,23 +213,31 @@ class CompiledStep:
         self.conclude_fn: Callable = conclude
         self.prepare: Callable = jax.jit(prepare)
         self.conclude: Callable = jax.jit(conclude)
+        self.engine = resolve_engine(engine)
+        # one trace of prepare gives its layouts (and, for C, the jaxpr to write out);
+        # XLA's jit reuses it at the first call
+        zeros = [np.zeros(f.size) for f in (F[0], F[1], F[3])]
+        jp = (jax.make_jaxpr(prepare)(*zeros) if self.engine == "c"
+              else self.prepare.trace(*zeros))       # type: ignore[attr-defined]
+        self.nx = traced["nx"]
+        self.layouts = Layouts(F[0], F[1], F[2], F[3], traced["prep"], FlatTree(failed(self.nx)))
+        self.no_solution = self.flat_solution(failed(self.nx))
         # their layouts are recorded by the first trace of prepare / conclude
         self.unpack_qp: Callable = qp_packer.unpack
         self.unpack_record: Callable = out_packer.unpack
-        self.engine = resolve_engine(engine)
         self.c_source: str | None = None
         self.c_built = False           # compiled at this start, not found in the cache
         if self.engine == "c":
-            self._use_c(native)
+            self._use_c(jp, native)
 
-    def _use_c(self, native: bool) -> None:
-        """``prepare`` and ``conclude`` as generated C (``deploy.codegen``), built with the
-        system compiler (cached by the source's hash) and called on numpy arrays."""
+    def _use_c(self, jp, native: bool) -> None:
+        """``prepare`` (its jaxpr ``jp``) and ``conclude`` as generated C
+        (``deploy.codegen``), built with the system compiler (cached by the source's hash)
+        and called on numpy arrays."""
         from safewbc_jax.deploy.codegen import build, emit
 
         L = self.layouts
         zeros = lambda flat: np.zeros(flat.size)  # noqa: E731
-        jp = jax.make_jaxpr(self.prepare_fn)(zeros(L.fixed), zeros(L.state), zeros(L.meas))
         jc = jax.make_jaxpr(self.conclude_fn)(zeros(L.fixed), zeros(L.tally), zeros(L.prep),
                                               zeros(L.sol))
         fp, fc = emit.emit_function("swbc_prepare", jp), emit.emit_function("swbc_conclude", jc)
