@@ -435,11 +435,18 @@ def walking_start(model, q, start, blend) -> WalkStart:
     return WalkStart(jnp.asarray(blend), pl[1] - start.origin[1])
 
 
+@jax.jit
+def _sole_positions(model, q):
+    """(2, 3): the left and right sole at q, in one compiled call (op by op, each jnp
+    operation would compile alone)."""
+    return jnp.stack([robot.frame_pose(model, q, f)[0]
+                      for f in (digit.LEFT_SOLE, digit.RIGHT_SOLE)])
+
+
 def first_step_domain(model, q, v_des=0.2):
     """The domain at the start of the first (left-stance) step with the robot at ``q``:
     where walking barriers, inactive while standing, meet Theorem 1 first."""
-    pl = np.asarray(robot.frame_pose(model, q, digit.LEFT_SOLE)[0])
-    pr = np.asarray(robot.frame_pose(model, q, digit.RIGHT_SOLE)[0])
+    pl, pr = np.asarray(_sole_positions(model, jnp.asarray(q)))
     g = GaitState(np.float64(LEFT), np.float64(0.0), pl, pr, 0, 0)
     return gait_domain(g, np.float64(0.0), np.float64(v_des), np.float64(STEP_WIDTH))
 

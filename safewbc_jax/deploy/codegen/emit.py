@@ -83,7 +83,7 @@ class Buf:
 
     @property
     def size(self) -> int:
-        return int(np.prod(self.shape, dtype=np.int64))
+        return int(math.prod(self.shape))
 
     def at(self, idx: str) -> str:
         return f"{self.name}[{idx}]"
@@ -189,7 +189,7 @@ class Emitter:
     def new_buf(self, aval) -> Buf:
         ct = ctype(aval.dtype)
         shape = tuple(int(d) for d in aval.shape)
-        name = self.pool.take(self.prefix, ct, int(np.prod(shape, dtype=np.int64)))
+        name = self.pool.take(self.prefix, ct, math.prod(shape))
         self.pooled[name] = ct
         self.refs[name] = 1
         return Buf(name, ct, shape, np.dtype(aval.dtype))
@@ -1419,12 +1419,10 @@ def emit_function(name: str, closed) -> CFunction:
         cur.append(line)
     parts.append(cur)
     funcs = []
+    # the inputs and outputs by their file-level pointers (one pass over each part)
+    ports = re.compile(r"\b((?:in|out)\d+)\b")
     for k, body in enumerate(parts):
-        text = "\n".join(body)
-        for j in range(len(ins)):
-            text = re.sub(rf"\bin{j}\b", f"{name}_in{j}", text)
-        for j in range(len(jaxpr.outvars)):
-            text = re.sub(rf"\bout{j}\b", f"{name}_out{j}", text)
+        text = ports.sub(rf"{name}_\1", "\n".join(body))
         funcs.append(f"#if SWBC_HAS({k})\nSWBC_PART void {name}_part{k}(void) {{\n{text}\n}}\n"
                      "#endif")
     setup = [f"    {name}_in{k} = in{k};" for k in range(len(ins))]
