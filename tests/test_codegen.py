@@ -254,3 +254,21 @@ def test_constants_are_folded_and_contiguous_slices_of_inputs_are_views():
     lib = build.load(build.build(emit.c_file([fn]))[0])
     (got,) = build.CCall(lib, fn)(x)
     np.testing.assert_array_equal(got, np.asarray(jax.jit(f)(x)))
+
+
+def test_repeated_equations_are_computed_once():
+    """An equation that repeats an earlier one (same primitive, parameters and inputs) is
+    read from the earlier one's result, also where a jitted call repeats: one sin, one
+    exp in the C. A literal of another value (-0.0 against 0.0) is a different input."""
+    inner = jax.jit(lambda x: jnp.exp(x) * 3.0)
+
+    def f(x):
+        a, b = jnp.sin(x) * 2.0, jnp.sin(x) * 2.0
+        return a + b + inner(x) + inner(x), jnp.maximum(x, 0.0) + jnp.maximum(x, -0.0)
+    x = _with_nan(_r(7))
+    fn = emit.emit_function("dedup", jax.make_jaxpr(f)(x))
+    assert fn.code.count("sin(") == 1 and fn.code.count("exp(") == 1, fn.code
+    assert "(0x0.0p+0)" in fn.code and "(-0x0.0p+0)" in fn.code    # both maxima kept
+    lib = build.load(build.build(emit.c_file([fn]))[0])
+    for got, want in zip(build.CCall(lib, fn)(x), jax.jit(f)(x)):   # libm's sin and exp
+        np.testing.assert_allclose(got, np.asarray(want), rtol=1e-12)   # against XLA's

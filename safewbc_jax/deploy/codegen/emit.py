@@ -243,12 +243,14 @@ class Emitter:
             self.w(f"memcpy({dst.name}, {src.name}, sizeof({dst.ctype}) * {n});")
 
     # -- jaxprs
-    def run(self, jaxpr, args: list, consts: list | None = None) -> list:
+    def run(self, jaxpr, args: list, consts: list | None = None, dedupe: bool = True) -> list:
         """Emit ``jaxpr`` (a Jaxpr) with its invars bound to ``args`` (Buf or Lit) and its
         constvars to ``consts``; returns its outputs. Temporaries are pooled after their
         last use; ``args`` and outputs are not released here."""
         import jax.extend.core as jcore
 
+        if dedupe:
+            jaxpr = _deduplicate(jaxpr)
         env: dict = {}
         for v, a in zip(jaxpr.constvars, consts or []):
             env[v] = a
@@ -1337,6 +1339,52 @@ static void swbc_trisolve(int64_t n, int64_t m, int64_t k, const double *a, doub
 """
 
 
+def _param_key(v):
+    """A hashable key of an equation's parameter that tells apart what ``==`` does not
+    (0.0 and -0.0; arrays by their bytes); raises TypeError where there is none."""
+    if isinstance(v, float):
+        return ("f", v.hex())
+    if isinstance(v, np.ndarray):
+        return ("a", v.dtype.str, v.shape, v.tobytes())
+    if isinstance(v, (tuple, list)):
+        return (type(v).__name__, tuple(_param_key(x) for x in v))
+    hash(v)
+    return v
+
+
+def _deduplicate(jaxpr):
+    """``jaxpr`` with each equation that repeats an earlier one (the same primitive,
+    parameters and inputs, no effects) left out, its results read from the earlier one's.
+    JAX leaves such repeats (a frame's pose evaluated by several safe sets, say), which
+    XLA's own CSE removes; here every equation would become C."""
+    import jax.extend.core as jcore
+
+    rep: dict = {}
+    seen: dict = {}
+    eqns = []
+    for e in jaxpr.eqns:
+        ins = [rep.get(v, v) if not isinstance(v, jcore.Literal) else v for v in e.invars]
+        try:
+            key = (e.primitive, tuple((k, _param_key(v)) for k, v in sorted(e.params.items())),
+                   tuple(("lit", str(v.aval.dtype), np.asarray(v.val).tobytes())
+                         if isinstance(v, jcore.Literal) else v for v in ins))
+            hash(key)
+        except TypeError:
+            key = None
+        if key is not None and not e.effects and key in seen:
+            for a, b in zip(e.outvars, seen[key]):
+                rep[a] = b
+            continue
+        if key is not None and not e.effects:
+            seen[key] = e.outvars
+        eqns.append(e.replace(invars=ins) if any(a is not b for a, b in zip(ins, e.invars))
+                    else e)
+    if len(eqns) == len(jaxpr.eqns):
+        return jaxpr
+    outs = [rep.get(v, v) if not isinstance(v, jcore.Literal) else v for v in jaxpr.outvars]
+    return jaxpr.replace(eqns=eqns, outvars=outs)
+
+
 ALIASING = frozenset(("convert_element_type", "reshape", "squeeze", "expand_dims", "slice"))
 """Primitives whose result may be a view of their operand's storage (``Emitter.alias``)."""
 
@@ -1386,8 +1434,9 @@ def emit_function(name: str, closed) -> CFunction:
     ins = [Buf(f"in{k}", ctype(v.aval.dtype), tuple(v.aval.shape), np.dtype(v.aval.dtype),
                const=True) for k, v in enumerate(jaxpr.invars)]
     consts = [em.const_buf(c) for c in closed.consts]
+    jaxpr = _deduplicate(jaxpr)     # before the outputs' places are chosen
     em.direct = _direct_outputs(jaxpr)
-    outs = em.run(jaxpr, ins, consts)
+    outs = em.run(jaxpr, ins, consts, dedupe=False)
     # an output that is an input (or a view of one) is copied out of it first: the caller
     # may pass the same array as that input and as an output (a state updated in place)
     for k, o in enumerate(outs):
