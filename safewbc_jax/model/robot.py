@@ -361,6 +361,12 @@ def _kinematics_of(model: RobotModel, q, bodies):
     n = paths.shape[0]
     xrot = jnp.broadcast_to(spatial.quat_to_mat(q[3:7]), (n, 3, 3))
     xpos = jnp.broadcast_to(q[0:3], (n, 3))
+    if n == 1:      # one frame: its own path only, no padding, a product per joint
+        xr, xp = xrot[0], xpos[0]
+        for k in range(int((paths[0] < nb).sum())):
+            xp = xp + xr @ pos_path[0, k]
+            xr = xr @ rot_path[0, k]
+        return xp[None], xr[None]
     for k in range(paths.shape[1]):
         xpos = xpos + _matvec3(xrot, pos_path[:, k])
         xrot = _mat3(xrot, rot_path[:, k])
