@@ -187,17 +187,18 @@ class CompiledStep:
         # (qp.P_STRUCTURE): no bounded variable outside u, P block-diagonal with diagonal u
         # and lambda blocks
         bounded, p_blockdiag = np.zeros(0, int), qp_assembly.P_STRUCTURE
-        F = [FlatTree(t) for t in (fixed, state0, tally0, meas0)]   # fixed, state, tally, meas
+        f_fixed, f_state, f_tally, f_meas = (FlatTree(t) for t in (fixed, state0, tally0, meas0))
         qp_packer, out_packer = Packer(), Packer()
         traced: dict = {}             # the Prepared layout and nx, from the first trace
 
         def prepare(fixed, state, meas):
             state, prep, qpm = control_step.prepare(
-                ctx, *F[0].unpack(fixed, jnp), F[1].unpack(state, jnp), F[3].unpack(meas, jnp))
+                ctx, *f_fixed.unpack(fixed, jnp), f_state.unpack(state, jnp),
+                f_meas.unpack(meas, jnp))
             red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
             flat = traced.setdefault("prep", FlatTree(prep))
             traced.setdefault("nx", int(qpm.P.shape[-1]))
-            return (F[1].pack(state, jnp), flat.pack(prep, jnp),
+            return (f_state.pack(state, jnp), flat.pack(prep, jnp),
                     qp_packer.pack((qpm, red, rmap, policy.checks(red, jnp))))
 
         def conclude(fixed, tally, prep, sol):
@@ -216,11 +217,12 @@ class CompiledStep:
         self.engine = resolve_engine(engine)
         # one trace of prepare gives its layouts (and, for C, the jaxpr to write out);
         # XLA's jit reuses it at the first call
-        zeros = [np.zeros(f.size) for f in (F[0], F[1], F[3])]
+        zeros = [np.zeros(f.size) for f in (f_fixed, f_state, f_meas)]
         jp = (jax.make_jaxpr(prepare)(*zeros) if self.engine == "c"
               else self.prepare.trace(*zeros))       # type: ignore[attr-defined]
         self.nx = traced["nx"]
-        self.layouts = Layouts(F[0], F[1], F[2], F[3], traced["prep"], FlatTree(failed(self.nx)))
+        self.layouts = Layouts(f_fixed, f_state, f_tally, f_meas, traced["prep"],
+                               FlatTree(failed(self.nx)))
         self.no_solution = self.flat_solution(failed(self.nx))
         # their layouts are recorded by the first trace of prepare / conclude
         self.unpack_qp: Callable = qp_packer.unpack
