@@ -13,7 +13,7 @@ kernels XLA runs for the jitted step (``Controller.kernels``), and the run's fig
 (fell, barrier minima), so that a faster step is seen to be the same controller.
 
     python benchmarks/controller_step.py [--scenarios squat,bow,arms,walk,push]
-        [--engine c,xla] [--duration S] [--cpu N] [--no-tsid] [--json]
+        [--engine c,xla] [--native] [--duration S] [--cpu N] [--no-tsid] [--json]
 
 ``--engine``: the deployed step generated as C (``deploy.codegen``, the start time then
 includes the generation and the C compile, and a second start, from the build cache, is
@@ -52,7 +52,7 @@ def _round(x):
     return a.tolist()
 
 
-def bench_scenario(name, duration, tsid_step, engine="xla", control_dt=1e-3):
+def bench_scenario(name, duration, tsid_step, engine="xla", control_dt=1e-3, native=False):
     from safewbc_jax import scenarios
     from safewbc_jax.control import metrics
     from safewbc_jax.control.push import Push
@@ -65,7 +65,7 @@ def bench_scenario(name, duration, tsid_step, engine="xla", control_dt=1e-3):
             if opts.push is not None else None)
     cfg = RunConfig(sc, duration=opts.duration, settle=opts.settle, speed=opts.speed,
                     push=push, control_dt=control_dt, count_kernels=engine == "xla",
-                    engine=engine)
+                    engine=engine, native=native)
     tsid_us, tsid_bad = [], [0]
     started = [False]
 
@@ -121,6 +121,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--engine", default="c,xla",
                     help="the deployed step's engines, comma-separated, run one after the "
                     "other for each scenario: c, xla (default: both)")
+    ap.add_argument("--native", action="store_true",
+                    help="build the C engine with -march=native (safewbc run --native)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()]
@@ -152,9 +154,9 @@ def main(argv=None) -> dict:
         for engine in (engines if k % 2 == 0 else engines[::-1]):
             tstep = (tsid_anchor.TsidStep(str(paths.controller_xml()), contacts.SOLE_LENGTH,
                                           contacts.SOLE_WIDTH) if use_tsid else None)
-            r = bench_scenario(name, args.duration, tstep, engine)
+            r = bench_scenario(name, args.duration, tstep, engine, native=args.native)
             if engine == "c":       # a second start: the build found in the cache
-                r["cached_start_s"] = round(_cached_start(name), 2)
+                r["cached_start_s"] = round(_cached_start(name, args.native), 2)
             out["scenarios"].append(r)
             if not args.json:
                 _print(r)
@@ -163,13 +165,13 @@ def main(argv=None) -> dict:
     return out
 
 
-def _cached_start(name):
+def _cached_start(name, native=False):
     """Seconds of ``Controller.start`` with the C engine when the build is cached."""
     from safewbc_jax.deploy.codegen.export import stand_state
     from safewbc_jax.deploy.controller import Controller
 
     q, v = stand_state()
-    return Controller(name, engine="c").start(q, v)
+    return Controller(name, engine="c", native=native).start(q, v)
 
 
 def _print(r):

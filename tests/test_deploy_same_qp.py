@@ -3,8 +3,9 @@
 C (``deploy.codegen``; one call: the gait, the QP and the exact elimination, on flat
 vectors) equals the pure functions' (``control_step.prepare`` jitted on its pytrees, and
 the numpy elimination ``reduce.eliminate_equalities_np`` of that QP) to 1e-9; the C
-``prepare`` and ``conclude`` equal the same flat functions jitted by XLA, every output, to
-1e-9; and the XLA step's kernel count stays bounded.
+``prepare``, ``conclude`` and acceptance (``accept_solution``) equal the same flat
+functions jitted by XLA, every output, to 1e-12; and the XLA step's kernel count stays
+bounded.
 
 Tolerance: both sides evaluate the same float64 expressions, compiled in two different
 programs (XLA may fuse and reorder them differently), and the two eliminations factor
@@ -23,8 +24,10 @@ from safewbc_jax.model import spatial
 from safewbc_jax.control.step import Measurement
 from safewbc_jax.deploy.controller import Controller
 from safewbc_jax.solvers.problem import FIELDS
+from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
 from safewbc_jax.solvers.result import failed
-from safewbc_jax.solvers import reduce
+from safewbc_jax.solvers.status import SolveStatus
+from safewbc_jax.solvers import policy, reduce
 
 N_STATES = 100
 TOL = 1e-9
@@ -96,8 +99,10 @@ def test_deployed_step_builds_the_pure_functions_qp(stand, name):
     tally = lay.tally.pack(control_step.init_state(ctl.ctx, *stand, np, np.float64)[1])
     ref = jax.jit(lambda f, s, m: control_step.prepare(ctl.ctx, *f, s, m))
     rng = np.random.default_rng(14)
+    xla_accept = jax.jit(cs.accept_fn)
+    piqp = PiqpSolver(update=False, nominal_settings=REDUCED_QP_SETTINGS)
     bounded = None
-    worst, stances = 0.0, set()
+    worst, stances, accepted = 0.0, set(), set()
     for k in range(N_STATES):
         state, meas = _random_case(rng, ctl, stand[0], k)
         new, qpm, red, rmap = ctl.prepare_flat(state, meas)
@@ -125,6 +130,20 @@ def test_deployed_step_builds_the_pure_functions_qp(stand, name):
         got, want = cs.prepare(*flat_in), xla_prepare(*flat_in)
         for what, a, b in zip(("state", "prepared", "packed QP"), got, want):
             worst = max(worst, _close(f"{name} state {k}: C/XLA {what}", a, b, TOL_C))
+        # the host's acceptance after PIQP (``accept_solution``), C against XLA, at PIQP's
+        # solution of the reduced QP and at a random point (refused: ok 0), and its
+        # decision against numpy's (``policy.accept_batch``)
+        packed = got[2]
+        _, red_c, _, checks_c = cs.unpack_qp(packed[None])
+        xr, st, it = (piqp.solve_nominal(red_c.row(0)) if k % 2 == 0
+                      else (rng.standard_normal(cs.nr), SolveStatus.SOLVED, 3))
+        solved_in = np.concatenate([xr, [st, it, piqp.feas_tol]])
+        got_a, want_a = cs.accept(packed, solved_in), xla_accept(packed, solved_in)
+        for what, a, b in zip(("solve record", "u", "motor", "ok"), got_a, want_a):
+            worst = max(worst, _close(f"{name} state {k}: C/XLA accept {what}", a, b, TOL_C))
+        st_np, _ = policy.accept_batch(xr[None], red_c, [st], piqp.feas_tol, checks_c)
+        assert bool(got_a[3]) == (st_np[0] == SolveStatus.SOLVED), (name, k)
+        accepted.add(bool(got_a[3]))
         sol = cs.flat_solution(failed(cs.nx)._replace(
             x=rng.standard_normal(cs.nx), status=0, fallback=k % 2, iterations=5,
             eq_residual=1e-9))
@@ -133,6 +152,7 @@ def test_deployed_step_builds_the_pure_functions_qp(stand, name):
         for what, a, b in zip(("tally", "record"), got, want):
             worst = max(worst, _close(f"{name} state {k}: C/XLA conclude {what}", a, b,
                                       TOL_C))
+    assert accepted == {True, False}, accepted
     if ctl.walking:      # both stances and standing were built
         assert stances == {walking.BOTH, walking.LEFT, walking.RIGHT}, stances
     if name in COST_BOUND:

@@ -156,6 +156,32 @@ def test_finish_of_lanes_is_finish_lane_by_lane(loop):
         one, _ = cs.finish([lane], prep[i:i + 1], packed[i:i + 1], refused[:1], [1e-3], 0.0)
         np.testing.assert_array_equal(nxt[i].u, one[0].u)
 
+    # one robot's step on the C engine (``CompiledStep.solve_one``: PIQP, then the
+    # generated acceptance in one call, and the numpy path where it does not accept),
+    # with the same solver history: the same commands, counters and solve records (the
+    # acceptance's sums in C against numpy's: the tolerance above)
+    assert cs.fast(ctl.lane)
+    fast = [ctl.lane.sibling() for _ in pick]
+
+    def solve_one(lane, rows_, i, t):
+        lane.views, lane.fast = cs.unpack_qp(rows_[i:i + 1]), None
+        return cs.solve_one(lane, rows_[i], t, 0.0, 0.0)
+
+    for i, lane in enumerate(fast):
+        solve_one(lane, first_packed, i, -1e-3)
+    for i in range(3):                          # solved as posed, relaxed, failed
+        got, got_sol, x = solve_one(fast[i], packed, i, 0.0)
+        want = cmds[i]
+        assert (got.solve_status, got.fallback, got.measurement) == \
+            (want.solve_status, want.fallback, want.measurement)
+        np.testing.assert_allclose(got.u, want.u, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(got.motor, want.motor, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(got_sol, sols[i], rtol=1e-12, atol=1e-9)
+        assert (x is None) == (want.fallback == "failed")
+        b, lane = batch[i], fast[i]
+        assert (b.qp_failed, b.fallbacks) == (lane.qp_failed, lane.fallbacks)
+        np.testing.assert_array_equal(lane.last_u, b.last_u)
+
     # a user's solver of the solvers.host protocol with ``solve`` alone (no solve_lanes,
     # lane or reset): one ``solve`` per lane (``solvers.host.solve_lanes``), with PIQP's
     # outcome

@@ -49,7 +49,7 @@ def _cmd_run(args) -> int:
                      barrier=not args.no_barrier, params_file=args.params, video=args.video,
                      settle=args.settle, speed=args.speed, push=push, push_at=args.at,
                      push_for=args.push_for, quiet=args.quiet, safe_sets=tuple(args.safe_set),
-                     engine=args.engine)
+                     engine=args.engine, native=args.native)
     print(format_summary(m))
     print(f"wrote {m['out_dir']}/metrics.json, log.npz and figures")
     return 0
@@ -323,6 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--engine", choices=("auto", "c", "xla"), default="auto",
                    help="the deployed step: generated C built with the system compiler, "
                    "XLA, or auto (C where a C compiler exists; default)")
+    p.add_argument("--native", action="store_true",
+                   help="build the C engine for this CPU's instruction set (-march=native)")
     p.add_argument("--params", default=None, help="TOML of ControllerParams overrides")
     p.add_argument("--safe-set", dest="safe_set", action="append", default=[],
                    metavar="FILE.py:NAME", help="add the SafeSet NAME of a Python file "

@@ -126,7 +126,7 @@ def check_run_options(name: str, scenario, *, duration=None, settle=None, speed=
 def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_file=None,
                  video=None, settle=None, control_dt=DEFAULT_CONTROL_DT, quiet=False,
                  record_qps_every=0, speed=None, push=None, push_at=None, push_for=None,
-                 safe_sets=(), engine="auto") -> dict:
+                 safe_sets=(), engine="auto", native=False) -> dict:
     """Validate everything, run, write metrics.json, log.npz and figures; return metrics.
     Options left None take the scenario's defaults (``check_run_options``). ``safe_sets``:
     the user's safe sets to add, "FILE.py:NAME" references (``safesets.load``) or SafeSets."""
@@ -158,7 +158,7 @@ def run_scenario(name: str, *, duration=None, out=None, barrier=True, params_fil
     cfg = RunConfig(scenario, barrier=barrier, duration=duration, settle=settle,
                     control_dt=control_dt, speed=speed, record_qps_every=record_qps_every,
                     push=None if push is None else Push.single(push, push_at, push_for),
-                    engine=engine)
+                    engine=engine, native=native)
     # a tqdm bar of the control steps on stderr (one line per phase off a terminal)
     bar = Progress(f"[safewbc] {name}", unit="steps", phase="compiling", quiet=quiet)
     try:

@@ -31,8 +31,9 @@ from safewbc_jax.control.step import Measurement, state_ok
 from safewbc_jax.deploy.checks import check_measurement
 from safewbc_jax.deploy.packing import FlatTree, Packer
 from safewbc_jax.solvers import host, policy, reduce
-from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_RELAXED, SolveResult,
-                                        failed, fallback_name)
+from safewbc_jax.solvers.piqp_path import PiqpSolver
+from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED,
+                                        NOT_ATTEMPTED, SolveResult, failed, fallback_name, row)
 from safewbc_jax.solvers.status import SolveStatus
 
 
@@ -103,6 +104,42 @@ class HostRecord:
 
 
 
+def accept_solution(motors: control_step.MotorArrays, sol: FlatTree, qpm, red, rmap,
+                    checks: policy.Checks, x, status, iterations, feas_tol):
+    """The host side of a step after PIQP has solved the reduced QP as posed, for a lane
+    that holds no torque: the acceptance of x (``policy.accept_batch``), X = x0 + N x
+    (``reduce.expand``), the full QP's equality residual, X's torques u and the motor map
+    (``MotorArrays.to_motor``). Written once in jax.numpy; the C engine runs it as
+    generated C (``swbc_accept``), and ``tests/test_deploy_same_qp.py`` holds it to the
+    numpy path of ``CompiledStep.solve``.
+
+    Args:
+        motors: the motor map.
+        sol: the layout of conclude's flat solve record (``Layouts.sol``).
+        qpm, red, rmap, checks: the full QP, the reduced QP, the map back to X and the
+            reduced QP's ``policy.Checks``, as ``prepare`` packed them.
+        x: PIQP's solution of the reduced QP.
+        status, iterations: PIQP's ``SolveStatus`` code and iteration count.
+        feas_tol: the solver's acceptance tolerance.
+
+    Returns:
+        (the flat solve record, u, motor torques, ok): ok is 1 where x is accepted and X
+        is finite, else 0; then the host runs the policy's fallback (relaxed QP, or the
+        torque held) and the other outputs are not used.
+    """
+    eq, ineq, hard = policy.residuals_checked(x, red, checks, jnp)
+    good = (eq <= feas_tol * checks.eq_scale) & (ineq <= feas_tol * checks.in_scale)
+    X = reduce.expand(x, rmap)
+    ok = (status == int(SolveStatus.SOLVED)) & good & jnp.isfinite(X).all()
+    res = SolveResult(x=X, status=status, fallback=FALLBACK_NONE, relaxed_status=NOT_ATTEMPTED,
+                      iterations=iterations, max_slack=0.0,
+                      eq_residual=jnp.abs(qpm.A @ X - qpm.b).max(initial=0.0),
+                      ineq_violation=ineq, hard_violation=hard, polished=False,
+                      polish_iterations=0)
+    u = qpm.blocks.split(X)[1]
+    return sol.pack(res, jnp), u, motors.to_motor(u, jnp), ok.astype(jnp.float64)
+
+
 class Layouts(NamedTuple):
     """The flat-vector layout of each argument and result of the compiled step."""
 
@@ -135,6 +172,7 @@ class LaneState:
     # unpacked once (``CompiledStep.prepare_lane``)
     outputs: tuple = ()
     views: Any = None
+    fast: Any = None              # ``CompiledStep.solve_one``'s views and buffer
 
     def __post_init__(self) -> None:
         self.last_u = np.zeros(self.nu)
@@ -145,7 +183,7 @@ class LaneState:
         self.last_u = np.zeros(self.nu)
         self.prev_t, self.last_qp = None, None
         self.last_times = (np.nan, np.nan)
-        self.outputs, self.views = (), None
+        self.outputs, self.views, self.fast = (), None, None
         host.reset(self.solver)
 
     def sibling(self) -> LaneState:
@@ -198,6 +236,7 @@ class CompiledStep:
             red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
             flat = traced.setdefault("prep", FlatTree(prep))
             traced.setdefault("nx", int(qpm.P.shape[-1]))
+            traced.setdefault("nr", int(red.P.shape[-1]))
             return (f_state.pack(state, jnp), flat.pack(prep, jnp),
                     qp_packer.pack((qpm, red, rmap, policy.checks(red, jnp))))
 
@@ -210,8 +249,17 @@ class CompiledStep:
             return (L.tally.pack(tally, jnp),
                     out_packer.pack((out.record, prep.q, prep.v, prep.domain)))
 
+        def accept(packed, solved):
+            L = self.layouts
+            qpm, red, rmap, checks = qp_packer.unpack(packed, jnp)
+            nr = red.P.shape[-1]
+            return accept_solution(ctx.motors, L.sol, qpm, red, rmap, checks, solved[:nr],
+                                   *solved[nr:])
+
         self.prepare_fn: Callable = prepare
         self.conclude_fn: Callable = conclude
+        self.accept_fn: Callable = accept
+        self.accept: Callable | None = None     # the C engine's (``_use_c``)
         self.prepare: Callable = jax.jit(prepare)
         self.conclude: Callable = jax.jit(conclude)
         self.engine = resolve_engine(engine)
@@ -220,7 +268,7 @@ class CompiledStep:
         zeros = [np.zeros(f.size) for f in (f_fixed, f_state, f_meas)]
         jp = (jax.make_jaxpr(prepare)(*zeros) if self.engine == "c"
               else self.prepare.trace(*zeros))       # type: ignore[attr-defined]
-        self.nx = traced["nx"]
+        self.nx, self.nr, self.qp_size = traced["nx"], traced["nr"], qp_packer.size
         self.layouts = Layouts(f_fixed, f_state, f_tally, f_meas, traced["prep"],
                                FlatTree(failed(self.nx)))
         self.no_solution = self.flat_solution(failed(self.nx))
@@ -242,11 +290,14 @@ class CompiledStep:
         zeros = lambda flat: np.zeros(flat.size)  # noqa: E731
         jc = jax.make_jaxpr(self.conclude_fn)(zeros(L.fixed), zeros(L.tally), zeros(L.prep),
                                               zeros(L.sol))
+        ja = jax.make_jaxpr(self.accept_fn)(np.zeros(self.qp_size), np.zeros(self.nr + 3))
         fp, fc = emit.emit_function("swbc_prepare", jp), emit.emit_function("swbc_conclude", jc)
-        self.c_source = emit.c_file([fp, fc])
+        fa = emit.emit_function("swbc_accept", ja)
+        self.c_source = emit.c_file([fp, fc, fa])
         path, self.c_built = build.build(self.c_source, native)
         lib = build.load(path)
         self.prepare, self.conclude = build.CCall(lib, fp), build.CCall(lib, fc)
+        self.accept = build.CCall(lib, fa)
 
     def asarray(self, a):
         """``a`` as the engine's arrays take it (numpy for C, a JAX array for XLA)."""
@@ -383,6 +434,11 @@ class CompiledStep:
         qpm, red, rmap, checks = self.unpack_qp(packed) if unpacked is None else unpacked
         t1 = time.perf_counter()
         res = host.solve_lanes([lane.solver for lane in lanes], red, checks)
+        return self._conclude_lanes(lanes, qpm, rmap, res, ts, t_in, t_step, t1)
+
+    def _conclude_lanes(self, lanes: list[LaneState], qpm, rmap, res: SolveResult, ts,
+                        t_in: float, t_step: float, t1: float) -> tuple:
+        """``solve`` after the solvers' ``res`` over the reduced QPs (started at ``t1``)."""
         x = reduce.expand(res.x, rmap)
         usable = (res.fallback != FALLBACK_FAILED) & np.isfinite(x).all(axis=-1)
         eq = np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b).max(axis=-1)
@@ -412,6 +468,46 @@ class CompiledStep:
             cmds.append(Command(u[j].copy(), motor[j], SolveStatus(int(res.status[j])),
                                 fallback_name(fb), "ok", t_out))
         return cmds, sols, res, x, usable
+
+    def fast(self, lane: LaneState) -> bool:
+        """Whether ``solve_one`` takes ``lane``'s step: the C engine with a ``PiqpSolver``."""
+        return self.accept is not None and isinstance(lane.solver, PiqpSolver)
+
+    def solve_one(self, lane: LaneState, packed: np.ndarray, t: float, t_in: float,
+                  t_step: float) -> tuple[Command, np.ndarray, np.ndarray | None]:
+        """``solve`` for one lane (``fast``) after ``prepare_lane``: PIQP on the reduced QP
+        as posed, then the generated ``swbc_accept`` (``accept_solution``) in one call. Where
+        it does not accept x, ``solve``'s numpy path finishes the step from the same solve
+        (the relaxed QP, or the held torque). Returns (the Command; conclude's flat solve
+        record; X, or None where not usable)."""
+        if lane.fast is None:       # the lane's reduced QP (views of its output arrays)
+            _, red, _, checks = lane.views
+            lane.fast = (red.row(0), type(checks)(*(c[0] for c in checks)),
+                         np.zeros(self.nr + 3))
+        red, checks, solved = lane.fast
+        s: PiqpSolver = lane.solver
+        t1 = time.perf_counter()
+        x, status, iters = s.solve_nominal(red)
+        s.last_solve_time_us = (time.perf_counter() - t1) * 1e6
+        solved[:-3], solved[-3:] = x, (status, iters, s.feas_tol)
+        sol, u, motor, ok = self.accept(packed, solved)          # type: ignore[misc]
+        if not ok:                   # rare: the policy's fallback, in numpy
+            qpm, red_l, rmap, checks_l = lane.views
+            res = PiqpSolver.solve_lanes([s], red_l, checks_l,
+                                         nominal=(x[None], [status], [iters]))
+            cmds, sols, _, xs, usable = self._conclude_lanes([lane], qpm, rmap, res, (t,),
+                                                             t_in, t_step, t1)
+            return cmds[0], sols[0], xs[0] if usable[0] else None
+        t2 = time.perf_counter()
+        lane.last_times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6)
+        lane.last_qp = (lane.views[0], 0)
+        lane.last_u, lane.prev_t = u, t
+        return (Command(u.copy(), motor, SolveStatus.SOLVED, "none", "ok",
+                        (time.perf_counter() - t_in) * 1e6), sol, sol[:self.nx])
+
+    def solve_result(self, sol: np.ndarray) -> SolveResult:
+        """One QP's SolveResult (``result.row``'s types) from its flat solve record."""
+        return row(SolveResult(*(np.asarray(f)[None] for f in self.layouts.sol.unpack(sol))), 0)
 
     def hold(self, lane: LaneState, reason: str, t_in: float) -> Command:
         """A refused measurement's step: no solve, the lane's last good torque held."""

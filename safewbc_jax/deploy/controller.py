@@ -38,7 +38,6 @@ from safewbc_jax.deploy.motors import MotorMap
 from safewbc_jax.model import robot
 from safewbc_jax.solvers import host
 from safewbc_jax.solvers.piqp_path import REDUCED_QP_SETTINGS, PiqpSolver
-from safewbc_jax.solvers.result import row
 
 
 class Controller:
@@ -254,10 +253,10 @@ class Controller:
         ``tally`` or ``metrics()`` is read. A loop that reads ``record`` after sending the
         command keeps it off the command's path."""
         if self._pending is not None:
-            prep, sol, x, res, t_qp, t_solve = self._pending
+            prep, sol, x, solved, t_qp, t_solve = self._pending
             self._pending = None
             self._tally, out = self._cs.conclude(self._fixed, self._tally, prep, sol)
-            self._record = (out, x, res, t_qp, t_solve)
+            self._record = (out, x, sol if solved else None, t_qp, t_solve)
 
     @property
     def record(self) -> HostRecord | None:
@@ -268,10 +267,10 @@ class Controller:
         self.flush()
         r = self._record
         if r is not None and not isinstance(r, HostRecord):
-            packed, x, res, t_qp, t_solve = r
+            packed, x, sol, t_qp, t_solve = r
             rec, q, v, domain = self._cs.unpack_record(packed)
-            r = self._record = HostRecord(rec, q, v, domain, x,
-                                          None if res is None else row(res, 0), t_qp, t_solve)
+            r = self._record = HostRecord(rec, q, v, domain, x, None if sol is None
+                                          else self._cs.solve_result(sol), t_qp, t_solve)
         return r
 
     def kernels(self, cost: bool = False) -> dict:
@@ -333,11 +332,13 @@ class Controller:
         if reason == "ok" and not np.asarray(prep)[self._ok_at]:   # the state tests
             reason, self._record = cs.refused(self.lane, meas), None
         if reason != "ok":         # refused by the jitted step too: the torque is held
-            cmd, sol, x, res = cs.hold(self.lane, reason, t_in), cs.no_solution, None, None
+            cmd, sol, x = cs.hold(self.lane, reason, t_in), cs.no_solution, None
+        elif cs.fast(self.lane):   # the C engine with PIQP: one call after the solve
+            cmd, sol, x = cs.solve_one(self.lane, packed, meas.t, t_in, t_step)
         else:
-            cmds, sols, res, xs, usable = cs.solve([self.lane], np.asarray(packed)[None],
-                                                   (meas.t,), t_in, t_step, views)
+            cmds, sols, _, xs, usable = cs.solve([self.lane], np.asarray(packed)[None],
+                                                 (meas.t,), t_in, t_step, views)
             cmd, sol, x = cmds[0], sols[0], xs[0] if usable[0] else None
         if self.keep_metrics:
-            self._pending = (prep, sol, x, res, *self.lane.last_times)
+            self._pending = (prep, sol, x, reason == "ok", *self.lane.last_times)
         return cmd

@@ -38,10 +38,16 @@ class Packer:
         self._slices = slices
         return jnp.concatenate([jnp.ravel(jnp.asarray(x, jnp.float64)) for x in leaves])
 
-    def unpack(self, flat):
-        """numpy views of the leaves; leading axes of ``flat`` (a stack of packed vectors,
-        e.g. from a vmapped function) stay in front of each leaf's shape."""
-        flat = np.asarray(flat)
+    @property
+    def size(self) -> int:
+        """The packed vector's length (after the first ``pack``)."""
+        return self._slices[-1][1] if self._slices else 0
+
+    def unpack(self, flat, xp=np):
+        """numpy views of the leaves (``xp`` jax.numpy: slices of a traced vector); leading
+        axes of ``flat`` (a stack of packed vectors, e.g. from a vmapped function) stay in
+        front of each leaf's shape."""
+        flat = xp.asarray(flat)
         lead = flat.shape[:-1]
         out = [flat[..., a:b].reshape(lead + shape) for a, b, shape in self._slices]
         return jax.tree_util.tree_unflatten(self.treedef, out)

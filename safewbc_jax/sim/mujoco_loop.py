@@ -42,6 +42,7 @@ class RunConfig(RunSpec):
     push: Push | None = None           # a push on the base (push.Push.single(force, at, for))
     count_kernels: bool = False        # the jitted step's kernels in the info ("kernels")
     engine: str = "auto"               # the deployed step: "c", "xla" or "auto"
+    native: bool = False               # the C engine built for this CPU (-march=native)
 
 
 class ContactSensing:
@@ -221,7 +222,7 @@ def run(cfg: RunConfig, params: ControllerParams | None = None, progress=None,
     has ``diagnostics`` (the ALIP gait), its values per step are ``gait_diagnostics``.
     """
     n_steps, settle, duration = cfg.schedule()
-    ctl = cfg.controller(params, engine=cfg.engine)
+    ctl = cfg.controller(params, engine=cfg.engine, native=cfg.native)
     sim = SimRobot(ctl.motors.names, cfg.control_dt)
     ms, model, d = sim.ms, sim.model, sim.d
     scenario, walking, gait = ctl.scenario, ctl.walking, ctl.scenario.gait

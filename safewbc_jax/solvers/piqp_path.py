@@ -245,21 +245,27 @@ class PiqpSolver:
         return other
 
     @staticmethod
-    def solve_lanes(solvers: list, qp: QP, checks: policy.Checks) -> SolveResult:
+    def solve_lanes(solvers: list, qp: QP, checks: policy.Checks,
+                    nominal: tuple | None = None) -> SolveResult:
         """The policy's outcome for L QPs of one shape, each with its own ``PiqpSolver``
         (``solvers[l]``; L may be 1): PIQP solves each QP as posed, the acceptance of all L
         runs at once (``policy.accept_batch``), and the relaxed QP (b) is solved, per QP,
         only where the QP as posed failed. ``qp`` and ``checks``: float64 numpy arrays with
         the leading axis L. Returns one SolveResult whose fields are numpy arrays with the
-        leading axis L; a row does not depend on the other QPs (``tests/test_lockstep.py``)."""
+        leading axis L; a row does not depend on the other QPs (``tests/test_lockstep.py``).
+        ``nominal``: (x (L, n), status (L,), iterations (L,)) of the QPs as posed, where
+        ``solve_nominal`` has already solved them; they are then not solved again."""
         L, n, mi = len(solvers), qp.P.shape[-1], qp.G.shape[-2]
-        X = np.empty((L, n))
-        status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
         rows = [qp.row(k) for k in range(L)]
-        for k, s in enumerate(solvers):
-            t0 = time.perf_counter_ns()
-            X[k], status[k], iters[k] = s.solve_nominal(rows[k])
-            s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
+        if nominal is None:
+            X = np.empty((L, n))
+            status, iters = np.empty(L, np.int64), np.zeros(L, np.int64)
+            for k, s in enumerate(solvers):
+                t0 = time.perf_counter_ns()
+                X[k], status[k], iters[k] = s.solve_nominal(rows[k])
+                s.last_solve_time_us = (time.perf_counter_ns() - t0) / 1e3
+        else:
+            X, status, iters = (np.array(a) for a in nominal)
         tol = np.array([s.feas_tol for s in solvers])
         status, (eq, ineq, hard) = policy.accept_batch(X, qp, status, tol, checks)
         ok = status == int(SolveStatus.SOLVED)

@@ -108,25 +108,24 @@ def checks(qp: QP, xp=np) -> Checks:
     return Checks(eq_scale, in_scale, rows, rhs, soft_pen)
 
 
-def residuals_checked(x, qp: QP, ch: Checks):
-    """(eq, ineq, hard) of ``residuals`` for a host x and ``ch`` = ``checks(qp)``, as numpy
-    arrays. A non-finite x gives a NaN or +inf in ineq (each x_i is in two rows, +x_i - ub_i
-    and -x_i + lb_i: an infinite x_i makes one of them +inf or inf - inf), so that ineq's
-    test also rejects it; ``tests/test_piqp_path.py`` holds the two to each other. Leading
-    axes of x, of qp's arrays and of ch's arrays are a batch of QPs;
-    the residuals then have those axes (0-d arrays for one QP)."""
+def residuals_checked(x, qp: QP, ch: Checks, xp=np):
+    """(eq, ineq, hard) of ``residuals`` for x and ``ch`` = ``checks(qp)``, as ``xp``
+    arrays (numpy on the host; jax.numpy in the generated acceptance of
+    ``deploy.compiled``). A non-finite x gives a NaN or +inf in ineq (each x_i is in two
+    rows, +x_i - ub_i and -x_i + lb_i: an infinite x_i makes one of them +inf or
+    inf - inf), so that ineq's test also rejects it; ``tests/test_piqp_path.py`` holds
+    the two to each other. Leading axes of x, of qp's arrays and of ch's arrays are a
+    batch of QPs; the residuals then have those axes (0-d arrays for one QP)."""
     def mv(m, y):                                # m y over leading axes
         return m @ y if y.ndim == 1 else (m @ y[..., None])[..., 0]
 
     if qp.A.shape[-2]:
-        eq = np.abs(mv(qp.A, x) - qp.b).max(axis=-1)
+        eq = xp.abs(mv(qp.A, x) - qp.b).max(axis=-1)
     else:
-        eq = np.zeros(x.shape[:-1])
-    v = mv(ch.rows, x)
-    v -= ch.rhs
-    ineq = np.maximum(v.max(axis=-1, initial=-np.inf), 0.0)
-    v += ch.soft_pen
-    hard = np.maximum(v.max(axis=-1, initial=-np.inf), 0.0)
+        eq = xp.zeros(x.shape[:-1])
+    v = mv(ch.rows, x) - ch.rhs
+    ineq = xp.maximum(v.max(axis=-1, initial=-np.inf), 0.0)
+    hard = xp.maximum((v + ch.soft_pen).max(axis=-1, initial=-np.inf), 0.0)
     return eq, ineq, hard
 
 

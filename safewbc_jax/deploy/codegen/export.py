@@ -16,6 +16,10 @@ The functions, all on flat double vectors (sizes in the header):
                                              path's interior-point solver (``jax_qp``)
     swbc_prepare(fixed, state, meas,         the step up to the QP (full QP, reduced QP,
                  state', prep, qp)           map back to X, checks), for an own QP solver
+    swbc_accept(qp, solved,                  after an own solver's solution of the reduced
+                sol, u, motor, ok)           QP (solved: its x, status, iterations, feas_tol):
+                                             the acceptance test, X, the torques, the motor
+                                             map; ok 0 where the solution is not accepted
     swbc_conclude(fixed, tally, prep, sol,   the torque, record and metrics from a solution
                   tally', record)
 
@@ -58,7 +62,7 @@ def stand_state() -> tuple[np.ndarray, np.ndarray]:
 
 def step_functions(ctl) -> dict[str, tuple[Any, tuple]]:
     """{C name: (a JAX function of flat vectors, example arguments)} of a started
-    ``Controller``: start, init, the whole step, prepare and conclude."""
+    ``Controller``: start, init, the whole step, prepare, the acceptance and conclude."""
     import jax.numpy as jnp
 
     from safewbc_jax.control import step as control_step
@@ -87,6 +91,7 @@ def step_functions(ctl) -> dict[str, tuple[Any, tuple]]:
     return {"swbc_start": (start, (q,)), "swbc_init": (init, (q, v)),
             "swbc_step": (step, (fixed, state, tally, meas)),
             "swbc_prepare": (cs.prepare_fn, (fixed, state, meas)),
+            "swbc_accept": (cs.accept_fn, (np.zeros(cs.qp_size), np.zeros(cs.nr + 3))),
             "swbc_conclude": (cs.conclude_fn, (fixed, tally, np.zeros(L.prep.size),
                                                cs.no_solution))}
 
@@ -132,7 +137,7 @@ def export_c(scenario, out, params=None, safe_sets=(), barrier: bool = True,
     L, m = cs.layouts, ctl.model
     sizes = {"NQ": m.nq, "NV": m.nv, "NU": m.nu, "FIXED": L.fixed.size, "STATE": L.state.size,
              "TALLY": L.tally.size, "MEAS": L.meas.size, "PREP": L.prep.size,
-             "SOL": L.sol.size}
+             "SOL": L.sol.size, "QP": cs.qp_size, "SOLVED": cs.nr + 3}
     (out / HEADER).write_text(_header(fns, sizes, sc.name))
     # the example: one step at the stand, t = 0, the soles carrying half the weight each
     weight = ctl.ctx.weight
