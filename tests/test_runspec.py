@@ -29,7 +29,7 @@ def test_every_loop_config_is_a_run_spec_with_its_own_options():
     own = {c: [f.name for f in dataclasses.fields(c)][len(RUN_FIELDS):]
            for c in (BatchConfig, RunConfig)}
     assert own == {BatchConfig: ["decimate", "precision"],
-                   RunConfig: ["record_qps_every", "push", "count_kernels", "engine"]}
+                   RunConfig: ["record_qps_every", "push", "count_kernels", "engine", "native"]}
     with pytest.raises(TypeError):
         BatchConfig.of(run, decimate=1, duration=3.0)     # a run field is the run's
 
