@@ -106,12 +106,13 @@ class HostRecord:
 
 def accept_solution(motors: control_step.MotorArrays, sol: FlatTree, qpm, red, rmap,
                     checks: policy.Checks, x, status, iterations, feas_tol):
-    """The host side of a step after PIQP has solved the reduced QP as posed, for a lane
-    that holds no torque: the acceptance of x (``policy.accept_batch``), X = x0 + N x
-    (``reduce.expand``), the full QP's equality residual, X's torques u and the motor map
-    (``MotorArrays.to_motor``). Written once in jax.numpy; the C engine runs it as
-    generated C (``swbc_accept``), and ``tests/test_deploy_same_qp.py`` holds it to the
-    numpy path of ``CompiledStep.solve``.
+    """The host side of a step after PIQP has solved the reduced QP as posed: the
+    acceptance of x (``policy.accept_batch``'s test), X = x0 + N x (``reduce.expand``), the
+    full QP's equality residual, X's torques u and the motor map (``MotorArrays.to_motor``).
+    Written once in jax.numpy; the C engine runs it as generated C (``swbc_accept``,
+    ``CompiledStep.solve_one``). ``tests/test_deploy_same_qp.py`` holds the C to XLA's and
+    its decision to ``policy.accept_batch``; ``tests/test_lockstep.py`` holds
+    ``solve_one`` to the numpy path of ``CompiledStep.solve``.
 
     Args:
         motors: the motor map.
