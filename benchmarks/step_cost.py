@@ -14,7 +14,12 @@ The figures are deterministic for a jaxlib version and a CPU backend
 (a LAPACK factorisation or triangular solve) as no flops.
 
     python benchmarks/step_cost.py [--scenarios squat,bow,arms,walk,push]
-        [--parts squat] [--json]
+        [--parts squat] [--c] [--json]
+
+``--c``: also each part, and the whole deployed prepare, as the C engine generates and
+builds it (``deploy.codegen``, ``-O3``), timed per call with its code and data warm: the
+bare C function called through ctypes on fixed inputs, 300 calls to warm up, then the
+median of 5 runs of 2,000 calls. Pin the process to one idle core.
 """
 
 from __future__ import annotations
@@ -36,8 +41,41 @@ def deployed(names, q0, v0) -> dict:
     return out
 
 
-def parts(name, q0, v0) -> dict:
-    """The parts of a standing scenario's step, each compiled alone."""
+def c_time_us(fn, *args) -> float:
+    """Warm time per call (us) of ``fn(*args)`` (pytrees of arrays) as generated C."""
+    import jax
+    import numpy as np
+
+    from safewbc_jax.deploy.codegen import build, emit
+
+    leaves = [np.asarray(a) for a in jax.tree_util.tree_leaves(args)]
+    cf = emit.emit_function("part", jax.make_jaxpr(fn)(*args))   # inputs: the leaves
+    call = build.CCall(build.load(build.build(emit.c_file([cf]))[0]), cf)
+    return bare_us(call, [np.ascontiguousarray(a, dtype=dt)
+                          for a, dt in zip(leaves, call.in_dtypes)])
+
+
+def bare_us(call, ins) -> float:
+    """The median time per call (us) of a built ``CCall``'s C function on ``ins``."""
+    import time
+
+    import numpy as np
+
+    ptrs = [a.ctypes.data for a in ins] + call.out_ptrs
+    for _ in range(300):
+        call.c(*ptrs)
+    runs = []
+    for _ in range(5):
+        t = time.perf_counter_ns()
+        for _ in range(2000):
+            call.c(*ptrs)
+        runs.append((time.perf_counter_ns() - t) / 2000 / 1e3)
+    return float(np.median(runs))
+
+
+def parts(name, q0, v0, c: bool = False) -> dict:
+    """The parts of a standing scenario's step, each compiled alone (and, with ``c``, the
+    warm time of each as generated C, and of the whole deployed prepare)."""
     import jax
     import jax.numpy as jnp
 
@@ -47,6 +85,8 @@ def parts(name, q0, v0) -> dict:
     from safewbc_jax.deploy.controller import Controller
     from safewbc_jax.control.outputs import StepTerms
     from safewbc_jax.solvers import reduce
+    from safewbc_jax.control.step import Measurement
+    import numpy as np
 
     ctl = Controller(name, engine="xla")
     ctl.start(q0, v0, warm_up=False)
@@ -77,13 +117,27 @@ def parts(name, q0, v0) -> dict:
         "QP build (references, barriers, contacts, assembly)": (build, terms, q, v, tau),
         "elimination": (lambda qp: reduce.eliminate_equalities(qp, bounded, blockdiag), qp),
     }
-    return {k: kernels.cost(f, *a) for k, (f, *a) in rows.items()}
+    out = {k: kernels.cost(f, *a) for k, (f, *a) in rows.items()}
+    if c:
+        for k, (f, *a) in rows.items():
+            out[k]["c_us"] = round(c_time_us(f, *a), 1)
+        cctl = Controller(name, engine="c")
+        cctl.start(q0, v0, warm_up=False)
+        cs = cctl.compiled
+        meas = cs.flat_measurement(Measurement(q0, v0, 0.0, np.zeros(2)))
+        whole = cs.pack_fixed(cctl.params, cctl.start_data, cctl.run_values)
+        state = cs.layouts.state.pack(cctl.state)
+        out["the deployed prepare (the whole step before PIQP)"] = {
+            **cctl.kernels(cost=True), "c_us": round(bare_us(cs.prepare, [whole, state, meas]), 1)}
+    return out
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenarios", default="squat,bow,arms,walk,push")
     ap.add_argument("--parts", default="squat", help="a standing scenario ('' : none)")
+    ap.add_argument("--c", action="store_true",
+                    help="also the parts' warm time as generated C (builds each: minutes)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     import safewbc_jax
@@ -104,14 +158,15 @@ def main(argv=None) -> dict:
     _, _, _, sm, d = load_at_stand()
     q0, v0 = sm.to_controller(d.qpos, d.qvel)
     out = {"jax": jax.__version__, "deployed": deployed(names, q0, v0),
-           "parts": parts(args.parts, q0, v0) if args.parts else {}}
+           "parts": parts(args.parts, q0, v0, args.c) if args.parts else {}}
     if args.json:
         print(json.dumps(out))
         return out
 
     def line(label, c):
         print(f"  {label:<52} {c['flops'] / 1e6:7.3f} MFLOP {c['bytes'] / 1e6:7.3f} MB "
-              f"{c['kernels']:5d} kernels")
+              f"{c['kernels']:5d} kernels" + (f" {c['c_us']:7.1f} us as C" if "c_us" in c
+                                              else ""))
 
     print(f"jax {jax.__version__}: the deployed step (prepare with the elimination), at the stand")
     for k, c in out["deployed"].items():
