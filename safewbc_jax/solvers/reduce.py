@@ -128,7 +128,13 @@ def eliminate(qp: QP, bounded=None, p_blockdiag: bool | str = False, *, xp=jnp,
     # Each product below carries the u = 0 column beside N's nu columns ([x0 | N] per
     # block): a handful of larger products instead of twice as many small ones (XLA on
     # the CPU pays per operation).
-    sol = la.chol_solve(la.chol(M), xp.concatenate([-hq[:, None], Bm, Jt], axis=1))
+    # M is factored in reverse order, the tree's leaves first (Featherstone's order for
+    # the L'L factorisation): its factor then has no fill-in beyond M's own sparsity
+    # (Digit: 335 of 666 entries, against 660 in the model's root-first order), which
+    # the generated C's triangular solves skip
+    rv = slice(None, None, -1)
+    rhs = xp.concatenate([-hq[:, None], Bm, Jt], axis=1)
+    sol = la.chol_solve(la.chol(M[rv, rv]), rhs[rv])[rv]
     js = Jr @ sol                                   # [-J e, J a, J c]
     lam = la.solve(js[:, nu + 1:] + D, xp.concatenate([r[:, None], xp.zeros_like(js[:, :nu])],
                                                       axis=1) - js[:, :nu + 1])

@@ -1311,6 +1311,7 @@ static void swbc_trisolve(int64_t n, int64_t m, int64_t k, const double *a, doub
             int64_t j0 = low ? 0 : i + 1, j1 = low ? i : n;
             for (int64_t j = j0; j < j1; ++j) {
                 double f = A_(i, j);
+                if (f == 0.0) continue;          /* a structural zero of the factor */
                 const double *bj = b + j * k;
                 for (int64_t c = 0; c < k; ++c) bi[c] -= f * bj[c];
             }
