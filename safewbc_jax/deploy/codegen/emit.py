@@ -15,7 +15,10 @@ by name (``UnsupportedPrimitive``) before anything is written.
 
 The C follows XLA's semantics where they differ from C's: ``max``/``min`` propagate NaN,
 integer division truncates, gathers clamp their start indices (or fill, in
-``FILL_OR_DROP`` mode), sorts put NaN last.
+``FILL_OR_DROP`` mode), sorts put NaN last. One exception: the triangular solve skips the
+zero entries of its triangle (a tree-sparse Cholesky factor has about half), so a
+non-finite right-hand side does not spread through them as a dense solve would; finite
+values give the same bits.
 """
 
 from __future__ import annotations
