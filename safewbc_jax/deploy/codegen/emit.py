@@ -18,7 +18,7 @@ integer division truncates, gathers clamp their start indices (or fill, in
 ``FILL_OR_DROP`` mode), sorts put NaN last. One exception: the triangular solve skips the
 zero entries of its triangle (a tree-sparse Cholesky factor has about half), so a
 non-finite right-hand side does not spread through them as a dense solve would; finite
-values give the same bits.
+values give the same numbers (up to the sign of an exact zero).
 """
 
 from __future__ import annotations
