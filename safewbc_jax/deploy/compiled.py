@@ -129,9 +129,9 @@ def accept_solution(motors: control_step.MotorArrays, sol: FlatTree, qpm, red, r
         torque held) and the other outputs are not used.
     """
     eq, ineq, hard = policy.residuals_checked(x, red, checks, jnp)
-    good = (eq <= feas_tol * checks.eq_scale) & (ineq <= feas_tol * checks.in_scale)
     X = reduce.expand(x, rmap)
-    ok = (status == int(SolveStatus.SOLVED)) & good & jnp.isfinite(X).all()
+    ok = ((status == int(SolveStatus.SOLVED)) & policy.within(eq, ineq, feas_tol, checks)
+          & jnp.isfinite(X).all())
     res = SolveResult(x=X, status=status, fallback=FALLBACK_NONE, relaxed_status=NOT_ATTEMPTED,
                       iterations=iterations, max_slack=0.0,
                       eq_residual=jnp.abs(qpm.A @ X - qpm.b).max(initial=0.0),

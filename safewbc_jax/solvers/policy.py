@@ -129,6 +129,13 @@ def residuals_checked(x, qp: QP, ch: Checks, xp=np):
     return eq, ineq, hard
 
 
+def within(eq, ineq, feas_tol, checks: Checks):
+    """Whether residuals (eq, ineq) of ``residuals_checked`` pass ``feas_tol`` on the
+    scales of ``checks`` (elementwise over a batch). A NaN fails both comparisons: ineq is
+    NaN or inf for a non-finite x."""
+    return (eq <= feas_tol * checks.eq_scale) & (ineq <= feas_tol * checks.in_scale)
+
+
 def accept_batch(x, qp: QP, status, feas_tol, checks: Checks):
     """``accept`` with ``checks`` for a batch of QPs on the host:
     x (L, n), status (L,) SolveStatus codes, qp's and checks' arrays with the leading axis
@@ -137,9 +144,7 @@ def accept_batch(x, qp: QP, status, feas_tol, checks: Checks):
     status = np.asarray(status)
     eq, ineq, hard = residuals_checked(x, qp, checks)
     solved = status == int(SOLVED)       # an int: numpy compares an IntEnum ~5 us slower
-    # a NaN fails both comparisons: ineq is NaN or inf for a non-finite x
-    good = (eq <= feas_tol * checks.eq_scale) & (ineq <= feas_tol * checks.in_scale)
-    out = np.where(solved & ~good, int(NUMERICAL), status)
+    out = np.where(solved & ~within(eq, ineq, feas_tol, checks), int(NUMERICAL), status)
     if solved.all():
         return out, (eq, ineq, hard)
     return out, tuple(np.where(solved, r, np.nan) for r in (eq, ineq, hard))
@@ -155,9 +160,7 @@ def accept(x, qp: QP, status, feas_tol, xp=np, slack=None, checks: Checks | None
         return status, (float("nan"),) * 3
     if checks is not None:
         eq, ineq, hard = (float(r) for r in residuals_checked(x, qp, checks))
-        # a NaN fails both comparisons: ineq is NaN or inf for a non-finite x
-        if status == SOLVED and not (eq <= feas_tol * checks.eq_scale
-                                     and ineq <= feas_tol * checks.in_scale):
+        if status == SOLVED and not within(eq, ineq, feas_tol, checks):
             status = NUMERICAL
         return status, (eq, ineq, hard)
     eq_scale, in_scale = scales(qp, xp)
@@ -244,5 +247,5 @@ def finish(nom: Attempt, rel: Attempt | None, xp=np) -> SolveResult:
                        polished=bool(polished), polish_iterations=int(kp))
 
 
-__all__ = ["residuals", "scales", "Checks", "checks", "residuals_checked", "accept",
+__all__ = ["residuals", "scales", "Checks", "checks", "residuals_checked", "within", "accept",
            "accept_batch", "Attempt", "skipped", "decide", "finish"]
