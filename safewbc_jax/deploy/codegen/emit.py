@@ -1389,6 +1389,72 @@ def _deduplicate(jaxpr):
     return jaxpr.replace(eqns=eqns, outvars=outs)
 
 
+def _forward_slices(jaxpr):
+    """``jaxpr`` with each unit-stride ``slice`` of a ``concatenate``'s result that lies
+    within one of its operands read from that operand instead (the operand itself where
+    the slice is all of it), repeatedly through nested concatenations. A matrix assembled
+    by blocks and sliced back into its blocks (the QP's P, A and G, and the elimination
+    that reads their blocks) then costs no copies, and ``_dead_code_removed`` drops an
+    assembly nobody else reads; XLA's algebraic simplifier does the same."""
+    import jax.extend.core as jcore
+
+    rep: dict = {}
+    concat: dict = {}           # a concatenate's result -> (its operands, its dimension)
+    eqns = []
+    for e in jaxpr.eqns:
+        ins = [rep.get(v, v) if not isinstance(v, jcore.Literal) else v for v in e.invars]
+        name = e.primitive.name
+        if name == "slice" and not any(k != 1 for k in (e.params["strides"] or ())):
+            src = ins[0]
+            start = list(e.params["start_indices"])
+            limit = list(e.params["limit_indices"])
+            while src in concat:
+                operands, dim = concat[src]
+                off, inner = 0, None
+                for x in operands:
+                    n = int(x.aval.shape[dim])
+                    if off <= start[dim] and limit[dim] <= off + n:
+                        inner = x
+                        break
+                    off += n
+                if inner is None or isinstance(inner, jcore.Literal):
+                    break
+                src, start[dim], limit[dim] = inner, start[dim] - off, limit[dim] - off
+            if src is not ins[0]:
+                if (all(a == 0 for a in start)
+                        and tuple(limit) == tuple(int(d) for d in src.aval.shape)):
+                    rep[e.outvars[0]] = src
+                    continue
+                e = e.replace(params={**e.params, "start_indices": tuple(start),
+                                      "limit_indices": tuple(limit)})
+                ins[0] = src
+        elif name == "concatenate":
+            concat[e.outvars[0]] = (ins, e.params["dimension"])
+        eqns.append(e.replace(invars=ins) if any(a is not b for a, b in zip(ins, e.invars))
+                    else e)
+    if not rep and all(a is b for a, b in zip(eqns, jaxpr.eqns)):
+        return jaxpr
+    outs = [rep.get(v, v) if not isinstance(v, jcore.Literal) else v for v in jaxpr.outvars]
+    return jaxpr.replace(eqns=eqns, outvars=outs)
+
+
+def _dead_code_removed(jaxpr):
+    """``jaxpr`` without the top-level equations whose results nothing reads (and that
+    have no effects). Tracing keeps them (a value computed for a result that was then
+    dropped, an assembly that ``_forward_slices`` bypassed); here each would become C."""
+    import jax.extend.core as jcore
+
+    live = {v for v in jaxpr.outvars if not isinstance(v, jcore.Literal)}
+    kept = []
+    for e in reversed(jaxpr.eqns):
+        if e.effects or any(v in live for v in e.outvars):
+            kept.append(e)
+            live.update(v for v in e.invars if not isinstance(v, jcore.Literal))
+    if len(kept) == len(jaxpr.eqns):
+        return jaxpr
+    return jaxpr.replace(eqns=kept[::-1])
+
+
 ALIASING = frozenset(("convert_element_type", "reshape", "squeeze", "expand_dims", "slice"))
 """Primitives whose result may be a view of their operand's storage (``Emitter.alias``)."""
 
@@ -1438,7 +1504,8 @@ def emit_function(name: str, closed) -> CFunction:
     ins = [Buf(f"in{k}", ctype(v.aval.dtype), tuple(v.aval.shape), np.dtype(v.aval.dtype),
                const=True) for k, v in enumerate(jaxpr.invars)]
     consts = [em.const_buf(c) for c in closed.consts]
-    jaxpr = _deduplicate(jaxpr)     # before the outputs' places are chosen
+    # before the outputs' places are chosen
+    jaxpr = _dead_code_removed(_forward_slices(_deduplicate(jaxpr)))
     em.direct = _direct_outputs(jaxpr)
     outs = em.run(jaxpr, ins, consts, dedupe=False)
     # an output that is an input (or a view of one) is copied out of it first: the caller
