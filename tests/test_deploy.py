@@ -228,15 +228,29 @@ def test_bad_measurement_holds_the_last_good_torque(squat, stand, case):
 
 @pytest.mark.slow
 def test_a_refused_step_leaves_the_last_good_qp(squat, stand):
-    """A refused step's prepare runs too, and builds its QP at the last good state and
-    time: ``last_qp`` (which views the C engine's output arrays, rewritten by every
-    prepare) stays the good step's, whatever the refused measurement's time or state."""
+    """``last_qp`` is the full QP the last good step solved, computed again from its state
+    and measurement (the step writes only the reduced QP and the equality rows): its
+    elimination (numpy's), solved by a PIQP of the controller's settings, gives the step's
+    X, and X's equality residual on it is the step's record. A refused step (whose prepare
+    runs too) leaves it the good step's, whatever the refused measurement's time or
+    state."""
+    from safewbc_jax.solvers import reduce
+
     ctl = squat
     ctl.reset()
     t_late = ctl.scenario.settle + 1.0
     ctl.step(Measurement(*stand, 0.0))               # the clock starts
     ctl.step(Measurement(*stand, t_late))
     good = ctl.last_qp()
+    X = ctl.record.solve.x
+    red, rmap = reduce.eliminate_equalities_np(good)
+    x, status, _ = ctl.lane.sibling().solver.solve_nominal(red)
+    assert status == SolveStatus.SOLVED
+    # PIQP stops within 1e-8 of the KKT conditions on QPs that differ by rounding (C's
+    # and XLA's): the two answers differ by ~1e-5 in the contact forces (~30 N)
+    np.testing.assert_allclose(reduce.expand(x, rmap), X, rtol=0, atol=1e-4)
+    # the same products on A from C and from XLA: rounding of the ~1e-11 residual alone
+    assert abs(np.abs(good.A @ X - good.b).max() - ctl.record.solve.eq_residual) < 1e-12
     q, v, f = _bad(stand, "nan_q")
     for meas in (Measurement(*stand, t_late - 0.5),           # refused for its time
                  Measurement(q, v, t_late + 0.5, f)):         # refused for its state

@@ -37,14 +37,15 @@ TOL_C = 1e-12
 # XLA's cost analysis of the deployed step (``Controller.kernels(cost=True)``), which is
 # deterministic for a jaxlib version and a backend. Kernels (each costs ~1 us on the CPU
 # whatever its size): at most what the step had before its lean rewrite (squat 286, arms
-# 304, walk 471; measured after it: 239, 269, 447). Flops and bytes accessed: 5% above
-# what the lean step measured on jax 0.10.2 (squat 0.569 MFLOP and 1.666 MB, arms 0.633
-# and 1.859, walk 0.736 and 2.161; before it 1.305/2.73, 1.372/3.03, 1.449/3.31), a
+# 304, walk 471; measured after it: 220, 250, 415). Flops and bytes accessed: 5% above
+# what the lean step measured on jax 0.10.2 (squat 0.568 MFLOP and 1.433 MB, arms 0.632
+# and 1.623, walk 0.728 and 1.915; before it 1.305/2.73, 1.372/3.03, 1.449/3.31), a
 # margin for another CPU's fusion choices, far below what undoing a part of the rewrite
 # costs (M as the sum over the bodies' Jacobians alone is +0.6 MFLOP; P as one 78 x 78
-# sum that each block's slice recomputes, +0.09).
-COST_BOUND = {"squat": (286, 0.569e6, 1.666e6), "arms": (304, 0.633e6, 1.859e6),
-              "walk": (471, 0.730e6, 2.151e6)}
+# sum that each block's slice recomputes, +0.09; the whole 78-variable QP written out
+# again, +0.23 MB).
+COST_BOUND = {"squat": (286, 0.568e6, 1.433e6), "arms": (304, 0.632e6, 1.623e6),
+              "walk": (471, 0.728e6, 1.915e6)}
 
 
 def _random_case(rng, ctl, q0, k):

@@ -32,6 +32,7 @@ from safewbc_jax.deploy.checks import check_measurement
 from safewbc_jax.deploy.packing import FlatTree, Packer
 from safewbc_jax.solvers import host, policy, reduce
 from safewbc_jax.solvers.piqp_path import PiqpSolver
+from safewbc_jax.solvers.problem import QP
 from safewbc_jax.solvers.result import (FALLBACK_FAILED, FALLBACK_NONE, FALLBACK_RELAXED,
                                         NOT_ATTEMPTED, SolveResult, failed, fallback_name, row)
 from safewbc_jax.solvers.status import SolveStatus
@@ -104,8 +105,18 @@ class HostRecord:
 
 
 
-def accept_solution(motors: control_step.MotorArrays, sol: FlatTree, qpm, red, rmap,
-                    checks: policy.Checks, x, status, iterations, feas_tol):
+class EqualityRows(NamedTuple):
+    """The full QP's equality rows A X = b (paper eqs. 1-3), the one part of it that the
+    step's host side reads after the solve (X's equality residual). ``prepare`` writes
+    these, not the whole 78-variable QP: ``CompiledStep.full_qp`` computes that on
+    demand (``Controller.last_qp``)."""
+
+    A: Any    # (nv + nc, n)
+    b: Any    # (nv + nc,)
+
+
+def accept_solution(motors: control_step.MotorArrays, sol: FlatTree, blocks, eqs: EqualityRows,
+                    red, rmap, checks: policy.Checks, x, status, iterations, feas_tol):
     """The host side of a step after PIQP has solved the reduced QP as posed: the
     acceptance of x (``policy.accept_batch``'s test), X = x0 + N x (``reduce.expand``), the
     full QP's equality residual, X's torques u and the motor map (``MotorArrays.to_motor``).
@@ -117,8 +128,9 @@ def accept_solution(motors: control_step.MotorArrays, sol: FlatTree, qpm, red, r
     Args:
         motors: the motor map.
         sol: the layout of conclude's flat solve record (``Layouts.sol``).
-        qpm, red, rmap, checks: the full QP, the reduced QP, the map back to X and the
-            reduced QP's ``policy.Checks``, as ``prepare`` packed them.
+        blocks: the full QP's block sizes (``QP.blocks``).
+        eqs, red, rmap, checks: the full QP's equality rows, the reduced QP, the map back
+            to X and the reduced QP's ``policy.Checks``, as ``prepare`` packed them.
         x: PIQP's solution of the reduced QP.
         status, iterations: PIQP's ``SolveStatus`` code and iteration count.
         feas_tol: the solver's acceptance tolerance.
@@ -134,10 +146,10 @@ def accept_solution(motors: control_step.MotorArrays, sol: FlatTree, qpm, red, r
           & jnp.isfinite(X).all())
     res = SolveResult(x=X, status=status, fallback=FALLBACK_NONE, relaxed_status=NOT_ATTEMPTED,
                       iterations=iterations, max_slack=0.0,
-                      eq_residual=jnp.abs(qpm.A @ X - qpm.b).max(initial=0.0),
+                      eq_residual=jnp.abs(eqs.A @ X - eqs.b).max(initial=0.0),
                       ineq_violation=ineq, hard_violation=hard, polished=False,
                       polish_iterations=0)
-    u = qpm.blocks.split(X)[1]
+    u = blocks.split(X)[1]
     return sol.pack(res, jnp), u, motors.to_motor(u, jnp), ok.astype(jnp.float64)
 
 
@@ -157,7 +169,8 @@ class LaneState:
     """The host side of one robot running a ``CompiledStep``: its solver (of the
     ``solvers.host`` protocol), its counters, the torque it holds, the time of its last
     accepted measurement, the wall times of its last good step (prepare, solve; us) and
-    where its last full QP is (the packed full QPs of that call, the row)."""
+    and the flat (ControllerState, measurement) its last good step started from (for
+    ``CompiledStep.full_qp``)."""
 
     solver: Any
     nu: int
@@ -168,7 +181,7 @@ class LaneState:
     last_u: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     prev_t: float | None = None
     last_times: tuple[float, float] = (np.nan, np.nan)
-    last_qp: tuple[Any, int] | None = None
+    last_inputs: tuple[Any, np.ndarray] | None = None
     # the C engine's prepare writes into the lane's own output arrays, whose QPs are
     # unpacked once (``CompiledStep.prepare_lane``)
     outputs: tuple = ()
@@ -182,7 +195,7 @@ class LaneState:
         """Counters zero, no torque held, the clock restarting, the solver set up afresh."""
         self.steps = self.qp_failed = self.fallbacks = self.bad_measurements = 0
         self.last_u = np.zeros(self.nu)
-        self.prev_t, self.last_qp = None, None
+        self.prev_t, self.last_inputs = None, None
         self.last_times = (np.nan, np.nan)
         self.outputs, self.views, self.fast = (), None, None
         host.reset(self.solver)
@@ -210,7 +223,9 @@ class CompiledStep:
             record)``.
         prepare_fn, conclude_fn: the same, unjitted (to vmap over lanes).
         layouts: the ``Layouts`` of the flat vectors.
-        unpack_qp: packed QP -> (full QP, reduced QP, map back to X, ``policy.Checks``).
+        unpack_qp: packed QP -> (the full QP's ``EqualityRows``, reduced QP, map back to
+            X, ``policy.Checks``).
+        blocks: the full QP's block sizes.
         unpack_record: packed record -> (StepRecord, q, v, domain).
         no_solution: the flat solve record of a step without a solution.
     """
@@ -238,8 +253,10 @@ class CompiledStep:
             flat = traced.setdefault("prep", FlatTree(prep))
             traced.setdefault("nx", int(qpm.P.shape[-1]))
             traced.setdefault("nr", int(red.P.shape[-1]))
+            traced.setdefault("blocks", qpm.blocks)
             return (f_state.pack(state, jnp), flat.pack(prep, jnp),
-                    qp_packer.pack((qpm, red, rmap, policy.checks(red, jnp))))
+                    qp_packer.pack((EqualityRows(qpm.A, qpm.b), red, rmap,
+                                    policy.checks(red, jnp))))
 
         def conclude(fixed, tally, prep, sol):
             L = self.layouts
@@ -252,10 +269,10 @@ class CompiledStep:
 
         def accept(packed, solved):
             L = self.layouts
-            qpm, red, rmap, checks = qp_packer.unpack(packed, jnp)
+            eqs, red, rmap, checks = qp_packer.unpack(packed, jnp)
             nr = red.P.shape[-1]
-            return accept_solution(ctx.motors, L.sol, qpm, red, rmap, checks, solved[:nr],
-                                   *solved[nr:])
+            return accept_solution(ctx.motors, L.sol, self.blocks, eqs, red, rmap, checks,
+                                   solved[:nr], *solved[nr:])
 
         self.prepare_fn: Callable = prepare
         self.conclude_fn: Callable = conclude
@@ -270,6 +287,8 @@ class CompiledStep:
         jp = (jax.make_jaxpr(prepare)(*zeros) if self.engine == "c"
               else self.prepare.trace(*zeros))       # type: ignore[attr-defined]
         self.nx, self.nr, self.qp_size = traced["nx"], traced["nr"], qp_packer.size
+        self.blocks = traced["blocks"]
+        self._full_qp: Callable | None = None
         self.layouts = Layouts(f_fixed, f_state, f_tally, f_meas, traced["prep"],
                                FlatTree(failed(self.nx)))
         self.no_solution = self.flat_solution(failed(self.nx))
@@ -303,6 +322,20 @@ class CompiledStep:
     def asarray(self, a):
         """``a`` as the engine's arrays take it (numpy for C, a JAX array for XLA)."""
         return np.asarray(a) if self.engine == "c" else jnp.asarray(a)
+
+    def full_qp(self, fixed, state, meas) -> QP:
+        """The full QP (numpy) that ``prepare`` builds from these flat inputs, before its
+        elimination: computed on demand by XLA (jitted at the first call), whatever the
+        engine, since the step itself writes only its ``EqualityRows``."""
+        if self._full_qp is None:
+            L, ctx = self.layouts, self.ctx
+
+            def qp_of(fx, st, ms):
+                params, start, run = L.fixed.unpack(fx, jnp)
+                return control_step.prepare(ctx, params, start, run, L.state.unpack(st, jnp),
+                                            L.meas.unpack(ms, jnp))[2]
+            self._full_qp = jax.jit(qp_of)
+        return self._full_qp(fixed, state, meas).with_arrays(np.array)
 
     # -- flat vectors
     def pack_fixed(self, params, start, run: control_step.RunValues) -> np.ndarray:
@@ -353,9 +386,7 @@ class CompiledStep:
     def prepare_lane(self, lane: LaneState, fixed, state, flat) -> tuple:
         """``prepare`` for one lane: (state, Prepared, packed QPs, their unpacked QPs with
         a leading axis of 1, or None). The C engine writes into the lane's output arrays
-        (made at the first call), whose QPs are unpacked once. ``lane.last_qp`` views
-        them: a refused measurement's step rewrites them with the same QP, as prepare
-        builds it at the last good state and time (``test_deploy`` holds this)."""
+        (made at the first call), whose QPs are unpacked once."""
         if self.engine != "c":
             return (*self.prepare(fixed, state, flat), None)
         if not lane.outputs:
@@ -432,17 +463,17 @@ class CompiledStep:
             (the Commands; conclude's flat solve records (L, .); the SolveResult, x over
             the full X and NaN where not usable, eq_residual of the full QP; X; usable).
         """
-        qpm, red, rmap, checks = self.unpack_qp(packed) if unpacked is None else unpacked
+        eqs, red, rmap, checks = self.unpack_qp(packed) if unpacked is None else unpacked
         t1 = time.perf_counter()
         res = host.solve_lanes([lane.solver for lane in lanes], red, checks)
-        return self._conclude_lanes(lanes, qpm, rmap, res, ts, t_in, t_step, t1)
+        return self._conclude_lanes(lanes, eqs, rmap, res, ts, t_in, t_step, t1)
 
-    def _conclude_lanes(self, lanes: list[LaneState], qpm, rmap, res: SolveResult, ts,
+    def _conclude_lanes(self, lanes: list[LaneState], eqs, rmap, res: SolveResult, ts,
                         t_in: float, t_step: float, t1: float) -> tuple:
         """``solve`` after the solvers' ``res`` over the reduced QPs (started at ``t1``)."""
         x = reduce.expand(res.x, rmap)
         usable = (res.fallback != FALLBACK_FAILED) & np.isfinite(x).all(axis=-1)
-        eq = np.abs((qpm.A @ x[..., None])[..., 0] - qpm.b).max(axis=-1)
+        eq = np.abs((eqs.A @ x[..., None])[..., 0] - eqs.b).max(axis=-1)
         res = res._replace(x=x, eq_residual=eq)
         if not usable.all():      # rare: failed()'s fields on those rows, with the
             res = SolveResult(*(np.array(f) for f in res))   # solver's status, or
@@ -454,7 +485,7 @@ class CompiledStep:
                     f[i] = v
         t2 = time.perf_counter()
         last_u = np.stack([lane.last_u for lane in lanes])
-        u = control_step.hold_torque(res.x, usable[:, None], last_u, qpm.blocks)
+        u = control_step.hold_torque(res.x, usable[:, None], last_u, self.blocks)
         motor = self.ctx.motors.to_motor(u)
         sols = self.flat_solution(res)
         times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6 / len(lanes))
@@ -462,7 +493,7 @@ class CompiledStep:
         cmds = []
         for j, lane in enumerate(lanes):
             fb = int(res.fallback[j])
-            lane.last_times, lane.last_qp = times, (qpm, j)
+            lane.last_times = times
             lane.qp_failed += fb == FALLBACK_FAILED
             lane.fallbacks += fb == FALLBACK_RELAXED
             lane.last_u, lane.prev_t = u[j], ts[j]
@@ -493,15 +524,14 @@ class CompiledStep:
         solved[:-3], solved[-3:] = x, (status, iters, s.feas_tol)
         sol, u, motor, ok = self.accept(packed, solved)          # type: ignore[misc]
         if not ok:                   # rare: the policy's fallback, in numpy
-            qpm, red_l, rmap, checks_l = lane.views
+            eqs, red_l, rmap, checks_l = lane.views
             res = PiqpSolver.solve_lanes([s], red_l, checks_l,
                                          nominal=(x[None], [status], [iters]))
-            cmds, sols, _, xs, usable = self._conclude_lanes([lane], qpm, rmap, res, (t,),
+            cmds, sols, _, xs, usable = self._conclude_lanes([lane], eqs, rmap, res, (t,),
                                                              t_in, t_step, t1)
             return cmds[0], sols[0], xs[0] if usable[0] else None
         t2 = time.perf_counter()
         lane.last_times = ((t1 - t_step) * 1e6, (t2 - t1) * 1e6)
-        lane.last_qp = (lane.views[0], 0)
         lane.last_u, lane.prev_t = u, t
         return (Command(u.copy(), motor, SolveStatus.SOLVED, "none", "ok",
                         (time.perf_counter() - t_in) * 1e6), sol, sol[:self.nx])

@@ -223,11 +223,12 @@ class Controller:
         return self.compiled
 
     def last_qp(self):
-        """The full QP (``solvers.problem.QP``, numpy) of the last good step, or None."""
-        if self.lane.last_qp is None:
+        """The full QP (``solvers.problem.QP``, numpy) of the last good step, or None:
+        computed again from that step's state and measurement (``CompiledStep.full_qp``),
+        since the step writes only the reduced QP and the full QP's equality rows."""
+        if self.lane.last_inputs is None:
             return None
-        qpm, j = self.lane.last_qp
-        return qpm.row(j).with_arrays(np.array)     # a copy: the C engine reuses its arrays
+        return self._cs.full_qp(self._fixed, *self.lane.last_inputs)
 
     @property
     def state(self) -> control_step.ControllerState:
@@ -290,10 +291,13 @@ class Controller:
         reduced QP, the map back to X), numpy. Changes nothing in the controller."""
         if self.compiled is None:
             raise RuntimeError("Controller.prepare_flat before start(q, v)")
-        lay = self.compiled.layouts
-        new, _, packed = self.compiled.prepare(self._fixed, self._cs.asarray(lay.state.pack(state)),
-                                               self.compiled.flat_measurement(meas))
-        return (lay.state.unpack(np.asarray(new)), *self.compiled.unpack_qp(packed)[:3])
+        cs = self.compiled
+        lay = cs.layouts
+        flat_state, flat_meas = lay.state.pack(state), cs.flat_measurement(meas)
+        new, _, packed = cs.prepare(self._fixed, cs.asarray(flat_state), flat_meas)
+        _, red, rmap, _ = cs.unpack_qp(packed)
+        return (lay.state.unpack(np.asarray(new)), cs.full_qp(self._fixed, flat_state, flat_meas),
+                red, rmap)
 
     def metrics(self) -> dict:
         """The controller-side metric columns so far (``metrics.finalize``)."""
@@ -327,6 +331,9 @@ class Controller:
             tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
             self._tally = cs.asarray(cs.layouts.tally.pack(tally))
             return cs.command(self.lane.last_u, None, "held", reason, t_in)
+        # the C engine writes the state in place: a copy for last_qp (a JAX array is not
+        # written)
+        state_in = self._state.copy() if isinstance(self._state, np.ndarray) else self._state
         self._state, prep, packed, views = cs.prepare_lane(self.lane, self._fixed,
                                                            self._state, flat)
         if reason == "ok" and not np.asarray(prep)[self._ok_at]:   # the state tests
@@ -339,6 +346,8 @@ class Controller:
             cmds, sols, _, xs, usable = cs.solve([self.lane], np.asarray(packed)[None],
                                                  (meas.t,), t_in, t_step, views)
             cmd, sol, x = cmds[0], sols[0], xs[0] if usable[0] else None
+        if reason == "ok":
+            self.lane.last_inputs = (state_in, flat)
         if self.keep_metrics:
             self._pending = (prep, sol, x, reason == "ok", *self.lane.last_times)
         return cmd
