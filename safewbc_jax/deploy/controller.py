@@ -291,13 +291,11 @@ class Controller:
         reduced QP, the map back to X), numpy. Changes nothing in the controller."""
         if self.compiled is None:
             raise RuntimeError("Controller.prepare_flat before start(q, v)")
-        cs = self.compiled
-        lay = cs.layouts
+        cs, lay = self.compiled, self.compiled.layouts
         flat_state, flat_meas = lay.state.pack(state), cs.flat_measurement(meas)
         new, _, packed = cs.prepare(self._fixed, cs.asarray(flat_state), flat_meas)
-        _, red, rmap, _ = cs.unpack_qp(packed)
         return (lay.state.unpack(np.asarray(new)), cs.full_qp(self._fixed, flat_state, flat_meas),
-                red, rmap)
+                *cs.unpack_qp(packed)[1:3])
 
     def metrics(self) -> dict:
         """The controller-side metric columns so far (``metrics.finalize``)."""
@@ -331,9 +329,8 @@ class Controller:
             tally = tally._replace(acc=metrics.control_refused(tally.acc, True, np))
             self._tally = cs.asarray(cs.layouts.tally.pack(tally))
             return cs.command(self.lane.last_u, None, "held", reason, t_in)
-        # the C engine writes the state in place: a copy for last_qp (a JAX array is not
-        # written)
-        state_in = self._state.copy() if isinstance(self._state, np.ndarray) else self._state
+        # for last_qp: C writes the state in place (an XLA result is never written)
+        state_in = np.copy(self._state) if cs.engine == "c" else self._state
         self._state, prep, packed, views = cs.prepare_lane(self.lane, self._fixed,
                                                            self._state, flat)
         if reason == "ok" and not np.asarray(prep)[self._ok_at]:   # the state tests
