@@ -57,10 +57,19 @@ def test_export_c_builds_with_make_and_prints_pythons_command(tmp_path, capsys):
     printed = np.array([float(x) for x in re.findall(r"motor\[\d+\] = (\S+)", r.stdout)])
     from safewbc_jax.deploy.codegen.export import export_c
 
-    want = export_c("squat", tmp_path / "again").motor       # Python's (XLA) motor command
+    again = export_c("squat", tmp_path / "again")
+    want = again.motor                                        # Python's (XLA) motor command
     assert printed.shape == want.shape == (20,)
     np.testing.assert_allclose(printed, want, rtol=0, atol=1e-9 * np.abs(want).max())
     assert np.abs(want).max() > 1.0                           # a real command, not zeros
+    # the reduced QP read from prepare's qp vector where the header says it is: its P's
+    # diagonal (C's against XLA's: the same sums up to their order, 1e-12 relative)
+    header = (out / "safewbc_step.h").read_text()
+    assert re.search(r"#define SWBC_QP_RED_P \d+", header), header
+    p_diag = np.array([float(x) for x in re.findall(r"reduced P\[\d+\]\[\d+\] = (\S+)",
+                                                    r.stdout)])
+    assert p_diag.shape == (20,) and (again.reduced_p_diagonal > 0).all()
+    np.testing.assert_allclose(p_diag, again.reduced_p_diagonal, rtol=1e-12)
 
 
 def _prepare_agrees(ctl_c, ctl_x, stand, n=10):

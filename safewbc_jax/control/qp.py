@@ -20,7 +20,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from safewbc_jax.solvers.problem import QP
+from safewbc_jax.solvers.problem import QP, PFactor
 
 
 P_STRUCTURE = "diagonal"
@@ -32,15 +32,17 @@ data; ``tests/test_deploy_same_qp.py`` holds them on every scenario's QP."""
 
 
 def task_cost(task_jacobians, task_drifts, y_star, weights, nv):
-    """Hessian and gradient (on q_ddot) of sum_o ||J_o q_ddot + J_o_dot v - y*_o||^2_{W_o}
-    in the 1/2 x'Px + q'x form: P = 2 sum J'WJ, q = 2 sum J'W (J_dot v - y*)."""
-    p = jnp.zeros((nv, nv))
-    g = jnp.zeros(nv)
-    for j, jd, ys, w in zip(task_jacobians, task_drifts, y_star, weights):
-        wj = w[:, None] * j
-        p = p + 2.0 * j.T @ wj
-        g = g + 2.0 * wj.T @ (jd - ys)
-    return p, g
+    """sum_o ||J_o q_ddot + J_o_dot v - y*_o||^2_{W_o} (the paper's task cost, after eq. 15)
+    in the 1/2 x'Px + q'x form, with its Hessian in task form: the outputs' stacked rows
+    J (m, nv), their weights w = 2 diag(W_o) (m,), and the gradient q = J' diag(w)
+    (J_dot v - y*), so that P = J' diag(w) J (``assemble`` forms it)."""
+    if not task_jacobians:
+        return jnp.zeros((0, nv)), jnp.zeros(0), jnp.zeros(nv)
+    J = jnp.concatenate(task_jacobians, axis=0)
+    w = 2.0 * jnp.concatenate([jnp.broadcast_to(w, (j.shape[0],))
+                               for w, j in zip(weights, task_jacobians)])
+    r = jnp.concatenate(task_drifts) - jnp.concatenate(y_star)
+    return J, w, J.T @ (w * r)
 
 
 def _diag(d):
@@ -59,12 +61,14 @@ def _block_diagonal(blocks):
     return jnp.concatenate(rows, axis=0)
 
 
-def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_q,
+def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_J, task_w, task_q,
              gamma, G_lambda, h_lambda, soft_lambda, barrier_rows, barrier_b, u_max) -> QP:
     """The QP matrices. Shapes: M (nv, nv), h (nv), B (nv, nu), J (nc, nv), Jdot_v (nc);
     ``contact_rows`` (nc,) bool marks the rows of J that belong to a foot contact and
     ``in_contact_rows`` (nc,) float is 1 where that foot is in contact: a row of a foot in
     the air becomes lambda_row = 0 (shapes stay fixed across domains).
+    task_J (m, nv), task_w (m,), task_q (nv): the task cost (``task_cost``), whose
+    Hessian J' diag(w) J the QP also carries in that form (``PFactor``).
     gamma: (nv + nu + nc,) diagonal of Gamma. G_lambda (m, nc) rows on lambda;
     barrier_rows (nb, nv) and barrier_b (nb,) mean barrier_rows q_ddot >= barrier_b."""
     nv, nu = B.shape
@@ -89,11 +93,12 @@ def assemble(*, M, h, B, J, Jdot_v, contact_rows, in_contact_rows, task_P, task_
     # P block by block (concatenations, no scatter, no n x n iota): the elimination
     # slices its q_ddot, u and lambda blocks back out, and a slice of a concatenation is
     # the operand itself, not a recomputation of all of P
-    P = _block_diagonal([task_P + _diag(2.0 * gamma[:nv]), _diag(2.0 * gamma[nv:nv + nu]),
-                         _diag(2.0 * gamma[nv + nu:])])
+    d = 2.0 * gamma[:nv]
+    P = _block_diagonal([task_J.T @ (task_w[:, None] * task_J) + _diag(d),
+                         _diag(2.0 * gamma[nv:nv + nu]), _diag(2.0 * gamma[nv + nu:])])
     q = jnp.concatenate([task_q, jnp.zeros(n - nv, dtype)])
     inf = jnp.full(nv, jnp.inf, dtype)
     lb = jnp.concatenate([-inf, -u_max, jnp.full(nc, -jnp.inf, dtype)])
     ub = jnp.concatenate([inf, u_max, jnp.full(nc, jnp.inf, dtype)])
     return QP(P=P, q=q, A=A, b=b, G=G, h=hv, lb=lb, ub=ub, soft=soft, nv=nv, nu=nu, nc=nc,
-              ng_lambda=G_lambda.shape[0])
+              ng_lambda=G_lambda.shape[0], p_factor=PFactor(task_J, task_w, d))

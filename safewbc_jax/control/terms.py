@@ -133,7 +133,7 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
         drift.append(jdv)
         w.append(params.weight[o.name] * mask.get(o.name, 1.0))
         err[o.name] = (ya, yd)
-    task_p, task_q = qp.task_cost(jac, drift, ystar, w, model.nv)
+    task_J, task_w, task_q = qp.task_cost(jac, drift, ystar, w, model.nv)
 
     nc_chain = n_chain_rows(model)
     nc = terms.J.shape[0]
@@ -181,8 +181,8 @@ def build_qp(model, scenario, params: ControllerParams, terms: Terms, q, v, tau,
     # Holonomic rows J q_ddot = -J_dot v - kd J v: kd = 0 is eqs. 2-3 as written.
     jdot_v = terms.Jdot_v + params.kd_constraint * (terms.J @ v)
     qpm = qp.assemble(M=terms.M, h=terms.h, B=model.B, J=terms.J, Jdot_v=jdot_v,
-                      contact_rows=contact_rows, in_contact_rows=in_rows, task_P=task_p,
-                      task_q=task_q, gamma=gamma, G_lambda=g_full, h_lambda=h_lam,
+                      contact_rows=contact_rows, in_contact_rows=in_rows, task_J=task_J,
+                      task_w=task_w, task_q=task_q, gamma=gamma, G_lambda=g_full, h_lambda=h_lam,
                       soft_lambda=soft_lam, barrier_rows=brow, barrier_b=bb, u_max=u_max)
     return qpm, QPAux(err, hvals)
 

@@ -19,6 +19,10 @@ every size they need from here; nothing beside the QP tells them Digit's.
 ``ng_lambda`` rows have entries in the lambda block only (contacts: friction, centre of
 pressure, ZMP), the rest in the q_ddot block only (A-ECBF rows), as ``qp.assemble`` lays
 them out. The elimination multiplies only those blocks. None: no such layout is claimed.
+
+``p_factor`` (optional leaves, ``PFactor``) states P's q_ddot block in the task form it
+has by construction, J' diag(w) J + diag(d) with the task Jacobians' rows J: the
+elimination applies it as such, never forming the nv x nv block. None: P alone.
 """
 
 from __future__ import annotations
@@ -35,6 +39,16 @@ FIELDS = ("P", "q", "A", "b", "G", "h", "lb", "ub", "soft")
 
 # a QP's arrays: JAX arrays in the jitted step, NumPy ones on the host (PIQP's) path
 Array = Any
+
+
+class PFactor(NamedTuple):
+    """P's q_ddot block as J' diag(w) J + diag(d): the task Jacobians' m rows J (m, nv),
+    their weights w (m,) and the diagonal d (nv,) (paper: the tasks' sum of
+    ||J_o q_ddot + ...||^2_{W_o} and Gamma's q_ddot part)."""
+
+    J: Array
+    w: Array
+    d: Array
 
 
 class Blocks(NamedTuple):
@@ -68,7 +82,7 @@ class Blocks(NamedTuple):
         return x[..., :nv], x[..., nv:nv + nu], x[..., nv + nu:]
 
 
-@partial(jax.tree_util.register_dataclass, data_fields=list(FIELDS),
+@partial(jax.tree_util.register_dataclass, data_fields=[*FIELDS, "p_factor"],
          meta_fields=["nv", "nu", "nc", "ng_lambda"])
 @dataclasses.dataclass(frozen=True)
 class QP:
@@ -94,6 +108,7 @@ class QP:
         nc: the contact forces' block size (None: the rest, or no blocks).
         ng_lambda: the first ``ng_lambda`` rows of G are on lambda only, the rest on
             q_ddot only; None: no such layout is claimed.
+        p_factor: P's q_ddot block as ``PFactor`` (task form), or None.
     """
 
     P: Array   # (n, n) symmetric positive semidefinite
@@ -109,6 +124,7 @@ class QP:
     nu: int | None = None
     nc: int | None = None
     ng_lambda: int | None = None   # rows of G on lambda only, then rows on q_ddot only
+    p_factor: PFactor | None = None    # P's q_ddot block in task form (module docstring)
 
     @property
     def n(self) -> int:
@@ -164,8 +180,10 @@ class QP:
         Returns:
             The i-th QP, with this QP's block sizes.
         """
+        pf = self.p_factor
         return QP(*(getattr(self, f)[i] for f in FIELDS), nv=self.nv,  # type: ignore[misc]
-                  nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda)
+                  nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda,
+                  p_factor=None if pf is None else PFactor(*(a[i] for a in pf)))
 
     def with_arrays(self, fn: Callable[[Array], Array]) -> QP:
         """Map every array field, the block sizes kept (``tree_map``'s result, without its
@@ -177,5 +195,7 @@ class QP:
         Returns:
             The QP of ``fn``'s results.
         """
+        pf = self.p_factor
         return QP(*(fn(getattr(self, f)) for f in FIELDS),  # type: ignore[misc]
-                  nv=self.nv, nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda)
+                  nv=self.nv, nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda,
+                  p_factor=None if pf is None else PFactor(*(fn(a) for a in pf)))

@@ -30,7 +30,10 @@ factorisations (``HOST``: scipy on the host; ``JAX``: jax.scipy, for jit; ``BATC
 ``p_blockdiag`` (P without q_ddot/u/lambda cross blocks, as the controller's;
 ``p_block_diagonal`` checks it) only P's diagonal blocks are; with ``p_blockdiag=
 "diagonal"`` (as ``p_structure`` finds for the controller's QP, whose u and lambda blocks
-are the diagonal Gamma) the lambda block is applied as its diagonal.
+are the diagonal Gamma) the lambda block is applied as its diagonal. A QP that carries its
+q_ddot block in task form (``QP.p_factor``: J' diag(w) J + diag(d), the task rows J) has
+it applied as J' (w (J y)) + d y: with m task rows, 2 m nv products per column against
+nv^2, and the nv x nv block itself is never formed.
 
 ``reduce_generic``: a QP without that structure (JAX solver, ``jax_qp.solve_generic``):
 x = Y R^-T b + Z y with Z an orthonormal basis of null(A) from a complete QR of A' (the
@@ -145,7 +148,10 @@ def eliminate(qp: QP, bounded=None, p_blockdiag: bool | str = False, *, xp=jnp,
     if p_blockdiag:                   # [x0 | N]' P [x0 | N] and N' q in one product
         p_ll = P[il, il]
         plam = (_diagonal(p_ll)[:, None] * lam if p_blockdiag == "diagonal" else p_ll @ lam)
-        py = xp.concatenate([P[iq, iq] @ y, plam], axis=0)
+        pf = qp.p_factor              # P_qq y in task form: J' (w * (J y)) + d * y
+        pqq_y = (P[iq, iq] @ y if pf is None
+                 else pf.J.T @ (pf.w[:, None] * (pf.J @ y)) + pf.d[:, None] * y)
+        py = xp.concatenate([pqq_y, plam], axis=0)
         ql = xp.concatenate([qp.q[iq], qp.q[il]])[:, None]
         hh_ = yl.T @ xp.concatenate([py, ql], axis=1)
         p_r = hh_[1:, 1:-1] + P[iu, iu]

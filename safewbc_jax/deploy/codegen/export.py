@@ -14,8 +14,11 @@ The functions, all on flat double vectors (sizes in the header):
     swbc_step(fixed, state, tally, meas,     one whole control step: measurement in, motor
               state', tally', motor, u)      torques out, the QP solved by the batched
                                              path's interior-point solver (``jax_qp``)
-    swbc_prepare(fixed, state, meas,         the step up to the QP (full QP, reduced QP,
-                 state', prep, qp)           map back to X, checks), for an own QP solver
+    swbc_prepare(fixed, state, meas,         the step up to the QP, for an own QP solver:
+                 state', prep, qp)           qp holds the reduced QP in the torques, the
+                                             map back to X, the full QP's equality rows and
+                                             the acceptance checks' rows (``SWBC_QP_*``:
+                                             where each array starts, row-major)
     swbc_accept(qp, solved,                  after an own solver's solution of the reduced
                 sol, u, motor, ok)           QP (solved: its x, status, iterations, feas_tol):
                                              the acceptance test, X, the torques, the motor
@@ -44,11 +47,12 @@ HEADER = "safewbc_step.h"
 @dataclasses.dataclass
 class Export:
     """What ``export_c`` wrote: the folder, the emitted functions, the example's stored
-    motor command (Python's, by XLA)."""
+    motor command and the diagonal of its reduced QP's P (Python's, by XLA)."""
 
     out: Path
     functions: list
     motor: np.ndarray
+    reduced_p_diagonal: np.ndarray
 
 
 def stand_state() -> tuple[np.ndarray, np.ndarray]:
@@ -138,19 +142,44 @@ def export_c(scenario, out, params=None, safe_sets=(), barrier: bool = True,
     sizes = {"NQ": m.nq, "NV": m.nv, "NU": m.nu, "FIXED": L.fixed.size, "STATE": L.state.size,
              "TALLY": L.tally.size, "MEAS": L.meas.size, "PREP": L.prep.size,
              "SOL": L.sol.size, "QP": cs.qp_size, "SOLVED": cs.nr + 3}
-    (out / HEADER).write_text(_header(fns, sizes, sc.name))
+    (out / HEADER).write_text(_header(fns, sizes, sc.name, qp_layout(cs)))
     # the example: one step at the stand, t = 0, the soles carrying half the weight each
     weight = ctl.ctx.weight
     meas = np.concatenate([q, v, [weight / 2, weight / 2], [0.0]])
     fixed = np.asarray(jitted["swbc_start"](q))
     state, tally = (np.asarray(a) for a in jitted["swbc_init"](q, v))
     motor = np.asarray(jitted["swbc_step"](fixed, state, tally, meas)[2])
-    (out / "main.c").write_text(_main(q, v, meas, motor, sizes))
+    red = cs.unpack_qp(np.asarray(jitted["swbc_prepare"](fixed, state, meas)[2]))[1]
+    p_diag = np.diag(red.P).copy()
+    (out / "main.c").write_text(_main(q, v, meas, motor, p_diag, sizes))
     (out / "Makefile").write_text(MAKEFILE)
-    return Export(out, fns, motor)
+    return Export(out, fns, motor, p_diag)
 
 
-def _header(fns, sizes: dict, scenario: str) -> str:
+QP_PARTS = ("EQ", "RED", "MAP", "CHECK")
+"""The names of ``CompiledStep.unpack_qp``'s four parts in the header's ``SWBC_QP_*``: the
+full QP's equality rows, the reduced QP, the map back to X, the acceptance checks."""
+
+
+def qp_layout(cs) -> str:
+    """``#define SWBC_QP_<PART>_<FIELD> offset`` of each array in prepare's qp vector (its
+    shape in a comment; row-major), and ``SWBC_NR``, the reduced QP's variable count."""
+    import jax
+
+    parts = cs.unpack_qp(np.arange(cs.qp_size, dtype=float))
+    lines = [f"#define SWBC_NR {cs.nr}   /* the reduced QP's variables: the torques u */\n"]
+    for part, tree in zip(QP_PARTS, parts):
+        for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+            a = np.asarray(leaf)
+            if a.size == 0:
+                continue
+            field = jax.tree_util.keystr(path).strip(".").upper()
+            shape = " x ".join(map(str, a.shape)) or "1"
+            lines.append(f"#define SWBC_QP_{part}_{field} {int(a.flat[0])}   /* {shape} */\n")
+    return "".join(lines)
+
+
+def _header(fns, sizes: dict, scenario: str, layout: str) -> str:
     head = emit.c_header(fns, "SAFEWBC_STEP_H").split("#include <stdint.h>\n", 1)
     macros = "".join(f"#define SWBC_{k}_SIZE {v}\n" if k not in ("NQ", "NV", "NU") else
                      f"#define SWBC_{k} {v}\n" for k, v in sizes.items())
@@ -158,20 +187,23 @@ def _header(fns, sizes: dict, scenario: str) -> str:
            "   The measurement vector: q (SWBC_NQ), v (SWBC_NV), the left and right soles'\n"
            "   normal forces (2, N), t (s). Not reentrant: the functions share static\n"
            "   buffers; call them from one thread. */\n")
-    return head[0] + "#include <stdint.h>\n" + doc + macros + head[1]
+    return head[0] + "#include <stdint.h>\n" + doc + macros + layout + head[1]
 
 
-def _main(q, v, meas, motor, sizes: dict) -> str:
+def _main(q, v, meas, motor, p_diag, sizes: dict) -> str:
     return (f'#include <math.h>\n#include <stdio.h>\n#include "{HEADER}"\n\n'
             + _array("Q", q) + _array("V", v) + _array("MEAS", meas)
-            + _array("PYTHON_MOTOR", motor) + """
+            + _array("PYTHON_MOTOR", motor) + _array("PYTHON_RED_P_DIAG", p_diag) + """
 /* one control step at a stored state: the stand, t = 0; prints the motor torques and
-   their largest difference from Python's (XLA's) for the same step */
+   their largest difference from Python's (XLA's) for the same step. Then the same step up
+   to the QP (swbc_prepare), as for an own QP solver: the diagonal of the reduced QP's
+   P (SWBC_NR x SWBC_NR, at SWBC_QP_RED_P in qp) against Python's */
 int main(void) {
     static double fixed[SWBC_FIXED_SIZE], state[SWBC_STATE_SIZE], tally[SWBC_TALLY_SIZE];
     static double state1[SWBC_STATE_SIZE], tally1[SWBC_TALLY_SIZE];
     static double motor[SWBC_NU], u[SWBC_NU];
-    double worst = 0.0;
+    static double prep[SWBC_PREP_SIZE], qp[SWBC_QP_SIZE];
+    double worst = 0.0, worst_p = 0.0;
     swbc_start(Q, fixed);
     swbc_init(Q, V, state, tally);
     swbc_step(fixed, state, tally, MEAS, state1, tally1, motor, u);
@@ -181,7 +213,15 @@ int main(void) {
         printf("motor[%d] = %.17g\\n", i, motor[i]);
     }
     printf("largest difference from Python's: %.3g N m\\n", worst);
-    return worst <= 1e-6 ? 0 : 1;
+    swbc_prepare(fixed, state, MEAS, state1, prep, qp);
+    for (int i = 0; i < SWBC_NR; ++i) {
+        double p = qp[SWBC_QP_RED_P + i * (SWBC_NR + 1)];
+        double d = fabs(p - PYTHON_RED_P_DIAG[i]) / fabs(PYTHON_RED_P_DIAG[i]);
+        if (!(d <= worst_p)) worst_p = d;
+        printf("reduced P[%d][%d] = %.17g\\n", i, i, p);
+    }
+    printf("largest relative difference from Python's: %.3g\\n", worst_p);
+    return worst <= 1e-6 && worst_p <= 1e-9 ? 0 : 1;
 }
 """)
 
