@@ -88,6 +88,9 @@ CASES = {
     "dot": (lambda a, b, c: (a @ b, jnp.einsum("bij,bjk->bik", c, c),
                              jnp.einsum("ij,ij->i", a, a), jnp.tensordot(c, a, ([2], [0]))),
             [_r(4, 4), _r(4, 3), _r(2, 4, 4)]),
+    # a run-time lhs with zeros (rows of contacts): its zero entries skip their row updates
+    "dot_zeros": (lambda a, b: (a @ b, jnp.einsum("bij,bjk->bik", a[None], b[None])),
+                  [np.where(rng.random((5, 7)) < 0.7, 0.0, _r(5, 7)), _r(7, 6)]),
     # a constant lhs mostly zeros: contracted over its nonzeros only
     "dot_sparse_const": (lambda x, y: (jnp.asarray(SPARSE) @ x, jnp.asarray(SPARSE) @ y,
                                        jnp.einsum("ijk,k->ij", jnp.asarray(SPARSE3), y)),

@@ -15,10 +15,13 @@ by name (``UnsupportedPrimitive``) before anything is written.
 
 The C follows XLA's semantics where they differ from C's: ``max``/``min`` propagate NaN,
 integer division truncates, gathers clamp their start indices (or fill, in
-``FILL_OR_DROP`` mode), sorts put NaN last. One exception: the triangular solve skips the
-zero entries of its triangle (a tree-sparse Cholesky factor has about half), so a
-non-finite right-hand side does not spread through them as a dense solve would; finite
-values give the same numbers (up to the sign of an exact zero).
+``FILL_OR_DROP`` mode), sorts put NaN last. Two exceptions, both for sparse operands whose
+zeros are known only at run time: the triangular solve skips the zero entries of its
+triangle (a tree-sparse Cholesky factor has about half), and a product in row form skips
+the zero entries of its lhs (``ZERO_SKIP_MIN``; the contact and chain rows have about
+three quarters). A non-finite entry of the other operand then does not spread through
+those zeros as a dense product would; finite values give the same numbers (up to the sign
+of an exact zero).
 """
 
 from __future__ import annotations
@@ -791,6 +794,12 @@ def _sparse_rows(em, e, a, lf, lc, lb) -> tuple[Buf, Buf, Buf] | None:
             em.const_buf(m[rows, cols]))
 
 
+ZERO_SKIP_MIN = 4
+"""A product in row form whose rhs rows are at least this long skips the row update of
+each lhs entry that is zero at run time (the contact and chain rows J~ and the contact
+rows of G are about three quarters zeros)."""
+
+
 @rule("dot_general")
 def _dot_general(em, e, ins):
     """out[batch, lhs free, rhs free] = sum over the contracted dims, each entry's sum in
@@ -800,8 +809,9 @@ def _dot_general(em, e, ins):
     the C compiler vectorises); otherwise one dot product per entry. Either order adds
     the same products to each entry in the same order, so the two give the same bits.
     A constant lhs that is mostly zeros (a static summation matrix) is contracted over
-    its nonzeros only (``_sparse_rows``): the same bits for finite rhs entries, as adding
-    a product 0 * b changes no sum."""
+    its nonzeros only (``_sparse_rows``), and in row form a zero entry of a run-time lhs
+    skips its row update (``ZERO_SKIP_MIN``): the same bits for finite rhs entries, as
+    adding a product 0 * b changes no sum."""
     out, a, b = _out(em, e), ins[0], ins[1]
     (lc, rc), (lb, rb) = e.params["dimension_numbers"]
     lf = [d for d in range(len(a.shape)) if d not in lc and d not in lb]
@@ -840,12 +850,16 @@ def _dot_general(em, e, ins):
         aval, nc = contraction(outer[nb:])
         f = em.tmp("f")
         em.w(f"double {f} = (double){aval};")
+        skip = sparse is None and math.prod(inner) >= ZERO_SKIP_MIN
+        if skip:         # a zero of the lhs adds no products (ZERO_SKIP_MIN)
+            em.w(f"if ({f} != 0) {{")
+            em.depth += 1
         jdx = em.loops(inner)
         for d, j in zip(rf, jdx):
             bi[d] = j
         em.w(f"{out.at(flat_index(outer + jdx, out.shape))} += {f} * "
              f"(double){b.at(flat_index(bi, b.shape))};")
-        em.close(len(jdx) + nc + len(outer))
+        em.close(len(jdx) + int(skip) + nc + len(outer))
         return [out]
     idx = em.loops(out.shape)
     for k, (x, y) in enumerate(zip(lb, rb)):
