@@ -81,13 +81,16 @@ def main(argv=None) -> dict:
     qp0 = jax.tree_util.tree_map(np.asarray, jax.jit(lambda q, v, t: controller.build_qp(
         model, sc, params, terms_of(q, v), q, v, t, start, in_contact)[0])(
             qj, vj, tau))
-    bounded, p_blockdiag = reduce.bounded_variables(qp0), reduce.p_block_diagonal(qp0)
+    # the structure the deployed step takes (trees before p_structure: p_block_diagonal)
+    structure = getattr(reduce, "p_structure", reduce.p_block_diagonal)
+    bounded, p_blockdiag = reduce.bounded_variables(qp0), structure(qp0)
     packers = {k: Packer() for k in ("rest", "whole")}
 
     def rest(terms, q, v, t, packer):
         qpm, _ = controller.build_qp(model, sc, params, terms, q, v, t, start, in_contact)
         red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
-        return packer.pack((qpm, red, rmap, policy.checks(red, jnp)))
+        # as the deployed step writes it: the full QP's equality rows, not the whole QP
+        return packer.pack(((qpm.A, qpm.b), red, rmap, policy.checks(red, jnp)))
 
     fns = {
         "robot terms": (lambda q, v: flat_terms.pack(terms_of(q, v), jnp), (qj, vj)),
