@@ -204,6 +204,29 @@ def test_buffers_are_reused_by_liveness():
     assert fn.buffer_bytes <= 3 * 8 * 1000, fn.buffer_bytes
 
 
+def test_a_free_buffer_grows_instead_of_a_new_one(monkeypatch):
+    """Small arrays whose buffers are free by the time a larger one is needed: with
+    ``emit.GROW`` one of them grows to the larger size, without it a new buffer is made;
+    the C computes the same bits either way."""
+    def f(x, y):
+        a = jnp.sin(x) * 2.0
+        b = jnp.cos(x) * 3.0
+        s = a.sum() + b.sum()
+        return jnp.tanh(y) * s + 1.0
+    args = (_r(10), _r(500))
+    closed = jax.make_jaxpr(f)(*args)
+    fns, got = {}, {}
+    for grow in (False, True):
+        monkeypatch.setattr(emit, "GROW", grow)
+        fns[grow] = emit.emit_function(f"grow{int(grow)}", closed)
+        lib = build.load(build.build(emit.c_file([fns[grow]]))[0])
+        got[grow] = build.CCall(lib, fns[grow])(*args)[0]
+    count = {g: fn.code.count("SWBC_SHARED double") for g, fn in fns.items()}
+    assert count[True] < count[False], count
+    np.testing.assert_array_equal(got[True], got[False])
+    np.testing.assert_allclose(got[True], np.asarray(jax.jit(f)(*args)), rtol=RTOL)
+
+
 def test_literals_are_exact():
     for x in (0.1, -1e-300, 1.0 / 3.0, 2.0 ** 60):
         assert float.fromhex(emit.c_literal(x, np.float64).strip("()")) == x

@@ -140,6 +140,13 @@ class CFunction:
     buffer_bytes: int
 
 
+GROW = True
+"""Where no free buffer of the type is large enough, the largest free one grows to the
+size (its declaration is written last) instead of a new buffer being made: fewer buffers,
+less memory for the step to bring back into cache (benchmarks/README.md, "A leaner
+output")."""
+
+
 @dataclass
 class _Pool:
     free: dict = field(default_factory=dict)       # ctype -> [(size, name)]
@@ -154,6 +161,11 @@ class _Pool:
                 best = k
         if best is not None:
             return free.pop(best)[1]
+        if free and GROW:      # none large enough: the largest free one grows to the size
+            k = max(range(len(free)), key=lambda i: free[i][0])
+            name = free.pop(k)[1]
+            self.decls = [(c, n, max(s, size) if n == name else s) for c, n, s in self.decls]
+            return name
         self.count += 1
         name = f"{prefix}_b{self.count}"
         self.decls.append((ct, name, max(size, 1)))
