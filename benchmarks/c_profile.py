@@ -10,8 +10,8 @@ largest parts first, with what they compute (their runtime routines and products
 
 x86-64 only (``__rdtsc``); the counter ticks at the CPU's base clock. Pin the process to
 one idle core (``taskset -c 0``). The instrumented build is the engine's source with the
-counters added, compiled as the engine compiles it (``-O3``, one unit), outside the build
-cache.
+counters added, built as the engine builds it (``build.build``: ``-O3``, cached by its
+own source's hash).
 """
 
 from __future__ import annotations
@@ -20,18 +20,19 @@ import argparse
 import ctypes
 import json
 import re
-import tempfile
-from pathlib import Path
 
 PART = re.compile(r"SWBC_PART void swbc_prepare_part(\d+)\(void\) \{\n(.*?)\n\}\n#endif",
                   re.S)
 
 
 def instrumented(source: str) -> tuple[str, int]:
-    """The source with a counter around each call of a prepare part (their number)."""
+    """The source with a counter around each call of a prepare part (their number). The
+    counters are defined with prepare's entry point, in the one unit that has it, and
+    visible outside the library."""
     calls = re.findall(r"    (swbc_prepare_part(\d+))\(\);", source)
-    source = source.replace("#if SWBC_MAIN", "#include <x86intrin.h>\n"
-                            f"uint64_t swbc_prof[{len(calls)}];\n#if SWBC_MAIN", 1)
+    source = source.replace("#if SWBC_MAIN", "#include <x86intrin.h>\n#if SWBC_MAIN\n"
+                            '__attribute__((visibility("default"))) '
+                            f"uint64_t swbc_prof[{len(calls)}];", 1)
     for name, k in calls:
         source = source.replace(f"    {name}();", f"    {{ uint64_t t0_ = __rdtsc(); {name}(); "
                                 f"swbc_prof[{k}] += __rdtsc() - t0_; }}", 1)
@@ -70,10 +71,7 @@ def main(argv=None) -> dict:
     ctl.start(q, v, warm_up=False)
     cs = ctl.compiled
     source, n = instrumented(cs.c_source)
-    tmp = Path(tempfile.mkdtemp())
-    (tmp / "p.c").write_text(source)
-    build._compile(build.compiler(), list(build.CFLAGS), tmp / "p.c", tmp / "p.so", 1)
-    lib = build.load(tmp / "p.so")
+    lib = build.load(build.build(source)[0])
     prepare = build.CCall(lib, cs.prepare.fn)
     prof = (ctypes.c_uint64 * n).in_dll(lib, "swbc_prof")
     fixed = cs.pack_fixed(ctl.params, ctl.start_data, ctl.run_values)

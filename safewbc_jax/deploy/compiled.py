@@ -169,7 +169,7 @@ class LaneState:
     """The host side of one robot running a ``CompiledStep``: its solver (of the
     ``solvers.host`` protocol), its counters, the torque it holds, the time of its last
     accepted measurement, the wall times of its last good step (prepare, solve; us) and
-    and the flat (ControllerState, measurement) its last good step started from (for
+    the flat (ControllerState, measurement) its last good step started from (for
     ``CompiledStep.full_qp``)."""
 
     solver: Any
@@ -245,10 +245,12 @@ class CompiledStep:
         qp_packer, out_packer = Packer(), Packer()
         traced: dict = {}             # the Prepared layout and nx, from the first trace
 
+        def built(fixed, state, meas):         # control_step.prepare on the flat vectors
+            return control_step.prepare(ctx, *f_fixed.unpack(fixed, jnp),
+                                        f_state.unpack(state, jnp), f_meas.unpack(meas, jnp))
+
         def prepare(fixed, state, meas):
-            state, prep, qpm = control_step.prepare(
-                ctx, *f_fixed.unpack(fixed, jnp), f_state.unpack(state, jnp),
-                f_meas.unpack(meas, jnp))
+            state, prep, qpm = built(fixed, state, meas)
             red, rmap = reduce.eliminate_equalities(qpm, bounded, p_blockdiag)
             flat = traced.setdefault("prep", FlatTree(prep))
             traced.setdefault("nx", int(qpm.P.shape[-1]))
@@ -274,6 +276,7 @@ class CompiledStep:
             return accept_solution(ctx.motors, L.sol, self.blocks, eqs, red, rmap, checks,
                                    solved[:nr], *solved[nr:])
 
+        self._built: Callable = built
         self.prepare_fn: Callable = prepare
         self.conclude_fn: Callable = conclude
         self.accept_fn: Callable = accept
@@ -328,13 +331,8 @@ class CompiledStep:
         elimination: computed on demand by XLA (jitted at the first call), whatever the
         engine, since the step itself writes only its ``EqualityRows``."""
         if self._full_qp is None:
-            L, ctx = self.layouts, self.ctx
-
-            def qp_of(fx, st, ms):
-                params, start, run = L.fixed.unpack(fx, jnp)
-                return control_step.prepare(ctx, params, start, run, L.state.unpack(st, jnp),
-                                            L.meas.unpack(ms, jnp))[2]
-            self._full_qp = jax.jit(qp_of)
+            built = self._built
+            self._full_qp = jax.jit(lambda *flat: built(*flat)[2])
         return self._full_qp(fixed, state, meas).with_arrays(np.array)
 
     # -- flat vectors

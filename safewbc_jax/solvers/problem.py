@@ -180,10 +180,7 @@ class QP:
         Returns:
             The i-th QP, with this QP's block sizes.
         """
-        pf = self.p_factor
-        return QP(*(getattr(self, f)[i] for f in FIELDS), nv=self.nv,  # type: ignore[misc]
-                  nu=self.nu, nc=self.nc, ng_lambda=self.ng_lambda,
-                  p_factor=None if pf is None else PFactor(*(a[i] for a in pf)))
+        return self.with_arrays(lambda a: a[i])
 
     def with_arrays(self, fn: Callable[[Array], Array]) -> QP:
         """Map every array field, the block sizes kept (``tree_map``'s result, without its
