@@ -15,21 +15,39 @@ safewbc_jax.enable_x64()
 N_STEPS = 1150         # 1 s standing (the reference blend), 0.15 s of the arms motion, pushed
 
 
-@pytest.fixture(scope="module")
-def loop():
-    from safewbc_jax import scenarios
-    from safewbc_jax.deploy.controller import Controller
-    from safewbc_jax.sim.lockstep import Lockstep
-    from safewbc_jax.sim.mujoco_loop import SimRobot
+_LOOPS: dict = {}
 
-    sc = scenarios.get_scenario("arms", True)
-    ctl = Controller(sc, sc.default_params(), 1e-3, barrier=True, settle=1.0, duration=0.15)
-    sim = SimRobot(ctl.motors.names, 1e-3)
-    sim.reset()
-    ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
-    lock = Lockstep(ctl, sim, 3)
-    lock.warm_up()
-    return ctl, sim, lock
+
+def _loop(engine):
+    """(leader Controller, SimRobot, Lockstep of width 3) on ``engine``, made once."""
+    if engine not in _LOOPS:
+        from safewbc_jax import scenarios
+        from safewbc_jax.deploy.controller import Controller
+        from safewbc_jax.sim.lockstep import Lockstep
+        from safewbc_jax.sim.mujoco_loop import SimRobot
+
+        sc = scenarios.get_scenario("arms", True)
+        ctl = Controller(sc, sc.default_params(), 1e-3, barrier=True, settle=1.0,
+                         duration=0.15, engine=engine)
+        sim = SimRobot(ctl.motors.names, 1e-3)
+        sim.reset()
+        ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
+        lock = Lockstep(ctl, sim, 3)
+        lock.warm_up()
+        _LOOPS[engine] = ctl, sim, lock
+    return _LOOPS[engine]
+
+
+@pytest.fixture(scope="module", params=["c", "xla"])
+def loop(request):
+    """Both engines' lanes: the generated C lane by lane (``CLanes``), XLA vmapped
+    (``Lanes``)."""
+    return _loop(request.param)
+
+
+@pytest.fixture(scope="module")
+def c_loop():
+    return _loop("c")
 
 
 def _task(ctl, sim, seed, p1, push_y):
@@ -56,12 +74,14 @@ def _single(ctl, sim, task):
 @pytest.mark.slow
 def test_lockstep_lanes_are_the_deployment_loop(loop):
     """Each lane against the deployment loop run alone on the same rollout: the same
-    falls and counts exactly, every metric within 1e-6 (the vmapped kernels round
-    differently from the single-robot ones, ~1e-16 relative, and the closed loop carries
-    that; measured <= 5e-7 over 400-1000 steps, barrier minima <= 1e-9 m). A lane whose
-    start state is refused (a NaN in its velocity perturbation) fails alone with the
-    reason, the others run."""
+    falls and counts exactly; every metric the same floats on the C engine (a lane runs
+    the same generated functions on the same inputs as one robot), within 1e-6 on XLA
+    (the vmapped kernels round differently from the single-robot ones, ~1e-16 relative,
+    and the closed loop carries that; measured <= 5e-7 over 400-1000 steps, barrier
+    minima <= 1e-9 m). A lane whose start state is refused (a NaN in its velocity
+    perturbation) fails alone with the reason, the others run."""
     ctl, sim, lock = loop
+    atol = 0.0 if ctl.compiled.engine == "c" else 1e-6
     bad = _task(ctl, sim, 2, 8.0, 0.0)
     bad[2][5] = np.nan
     tasks = [_task(ctl, sim, 1, 8.0, 40.0), bad, _task(ctl, sim, 3, 30.0, -60.0)]
@@ -78,7 +98,7 @@ def test_lockstep_lanes_are_the_deployment_loop(loop):
             if a.dtype.kind in "biu":
                 assert a == b, name
             else:
-                np.testing.assert_allclose(b, a, rtol=0, atol=1e-6, err_msg=name)
+                np.testing.assert_allclose(b, a, rtol=0, atol=atol, err_msg=name)
         assert int(cols["control_steps"]) == N_STEPS and int(cols["qp_failed"]) == 0
 
 
@@ -96,7 +116,7 @@ def test_lockstep_lane_does_not_depend_on_its_neighbours(loop):
 
 
 @pytest.mark.slow
-def test_finish_of_lanes_is_finish_lane_by_lane(loop):
+def test_finish_of_lanes_is_finish_lane_by_lane(c_loop):
     """``CompiledStep.finish`` (the lockstep's host side: PIQP per lane, the acceptance,
     expansion, held torque and motor map for all lanes at once) against the same with one
     lane at a time (what one robot's ``step`` runs), on the same rows of the vmapped
@@ -107,18 +127,15 @@ def test_finish_of_lanes_is_finish_lane_by_lane(loop):
     the torque each lane holds next exactly; the solve records within 1e-12 relative /
     1e-9 absolute (X = x0 + N u is one batched product against one per lane: BLAS may
     round differently; the torques are N's identity block and come out exactly)."""
-    ctl, sim, lock = loop
-    cs, lay = ctl.compiled, ctl.compiled.layouts
+    ctl, sim, _ = c_loop
+    cs = ctl.compiled
     sim.reset()
     ctl.restart(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel))
     meas = sim.sense(0.0)[0]
     rows = lambda a: np.stack([np.asarray(a)] * 3)  # noqa: E731
-    # the lockstep's one call a step: this step's prepare, the last step's conclude (none)
-    fixed, state, tally = ctl.lane_start(*ctl.start_state)
-    none = (np.zeros((3, lay.prep.size)), np.tile(cs.no_solution, (3, 1)))
-    _, prep, packed, *_ = lock.vstep(rows(fixed), rows(state), rows(cs.flat_measurement(meas)),
-                                     rows(tally), *none)
-    prep, packed = np.array(prep), np.array(packed)        # writable copies
+    fixed, state, _ = ctl.lane_start(*ctl.start_state)
+    _, prep, packed = cs.prepare(fixed, state, cs.flat_measurement(meas))
+    prep, packed = rows(prep), rows(packed)                 # three lanes' rows, writable
     first = [0, 0, 0, 0]
     first_prep, first_packed = prep[first], packed[first]  # the good rows, before the edit
     _, red, _, checks = cs.unpack_qp(packed)               # views into packed

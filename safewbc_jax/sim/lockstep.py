@@ -1,31 +1,38 @@
 """Several deployment loops in lockstep on one core.
 
-One robot's deployment loop (``mujoco_loop.rollout``) pays per control step one call of
-the deployed jitted step, whose cost on a CPU is mostly XLA's per-kernel runtime, not
-arithmetic. Running ``width`` rollouts side by side pays that runtime once per
-step for all of them: the leader controller's ``CompiledStep`` (its unjitted ``prepare``
-and ``conclude``), vmapped over the lanes. Each lane has its own ``LaneState`` (counters,
-held torque, PIQP solver), its own flat state vectors, and its own ``SimRobot``
-(``SimRobot.sibling``: one MjModel, one MjData per lane).
+``width`` rollouts side by side, each with its own ``LaneState`` (counters, held torque,
+PIQP solver), its own flat state vectors and its own ``SimRobot`` (``SimRobot.sibling``:
+one MjModel, one MjData per lane), all of the leader controller's ``CompiledStep``. How
+the lanes' control step runs follows the leader's engine:
+
+- ``engine="c"`` (``CLanes``): each lane runs one robot's deployed step as
+  ``Controller.step`` does (``CompiledStep.prepare_lane``, ``solve_one``, the generated
+  ``conclude``), lane by lane. Its generated C has no per-call runtime to share, and a
+  lane that stopped costs nothing.
+- ``engine="xla"`` (``Lanes``): one robot's jitted step pays per call mostly XLA's
+  per-kernel runtime, not arithmetic; the lanes pay it once a step for all of them: the
+  ``CompiledStep``'s unjitted ``prepare`` and ``conclude``, vmapped over the lanes, then
+  the host side of the step for all lanes at once (``CompiledStep.finish``: the
+  acceptance, X = x0 + N u, the held-torque rule, the motor map), PIQP one solve per lane
+  by the lane's own solver.
 
 The loop is ``sim.loop.simulate`` (measurement -> control step -> push -> physics -> plant
-metrics -> fall test), with the lanes' control step ``Lanes``: the measurement checks of
-all lanes at once (``CompiledStep.admit``), the vmapped call, and the host side of the
-step for all lanes at once (``CompiledStep.finish``: the acceptance, X = x0 + N u, the
-held-torque rule, the motor map), PIQP still one solve per lane by the lane's own solver.
-A lane whose measurement is refused holds its torque for that step.
+metrics -> fall test); the measurement checks of all lanes run at once
+(``CompiledStep.admit``). A lane whose measurement is refused holds its torque for that
+step.
 
 One XLA call a step: step k's conclude runs vmapped in the same call as step k+1's prepare
 (the two do not depend on each other; one call costs less than two), so step k's record,
 and with it step k's plant metrics, comes one call later (a last call after the loop
-concludes the last step); the push at step k takes its clock tau from step k's prepared
-rows.
+concludes the last step); the C lanes conclude each step in its own iteration. The push
+at step k takes its clock tau from step k's prepared rows.
 
-A lane whose robot fell, or whose rollout raised, stops (its row of the vmapped calls
-is still computed, and ignored); unused lanes (fewer rollouts than ``width``) likewise.
-Lane results agree with ``mujoco_loop.rollout`` to rounding (the vmapped XLA kernels are
-not the single-robot ones; ``tests/test_lockstep.py`` holds them to it), and a lane's
-result does not depend on the other lanes.
+A lane whose robot fell, or whose rollout raised, stops (XLA: its row of the vmapped
+calls is still computed, and ignored); unused lanes (fewer rollouts than ``width``)
+likewise. Lane results agree with ``mujoco_loop.rollout``: the C lanes run the same
+generated functions on the same inputs as one robot, the vmapped XLA kernels round
+differently from the single-robot ones (``tests/test_lockstep.py`` holds both), and a
+lane's result does not depend on the other lanes.
 """
 
 from __future__ import annotations
@@ -70,8 +77,9 @@ class Outcome(NamedTuple):
 class Lockstep:
     """``width`` lanes of the ``CompiledStep`` of one started ``Controller`` (``leader``,
     which also checks each rollout's start) and its ``SimRobot``; ``run`` rolls out up to
-    ``width`` rollouts at once. ``compile_s``: the seconds ``warm_up`` took (the vmapped
-    step's compile)."""
+    ``width`` rollouts at once, the lanes' control step ``CLanes`` or ``Lanes`` by the
+    leader's engine. ``compile_s``: the seconds ``warm_up`` took (XLA: the vmapped step's
+    compile)."""
 
     def __init__(self, leader: Controller, sim: SimRobot, width: int):
         if int(width) != width or width < 1:
@@ -89,7 +97,7 @@ class Lockstep:
             # (independent of each other; one XLA call costs less than two)
             return (*prepare(fixed, state, flat), *conclude(fixed, tally, prev_prep, prev_sol))
 
-        self.vstep = jax.jit(jax.vmap(step))
+        self.vstep = jax.jit(jax.vmap(step))    # the XLA lanes' (traced at their first call)
         self.compile_s: float | None = None
 
     def warm_up(self) -> float:
@@ -124,7 +132,7 @@ class Lockstep:
                 sims[i].reset()
             lanes[i].reset()
         pushes = [None if i >= n or tasks[i] is None else tasks[i].push for i in range(W)]
-        control = Lanes(self, lanes, arrays)
+        control = (CLanes if self.step.engine == "c" else Lanes)(self, lanes, arrays)
         lay = self.step.layouts
         res = simulate(sims, control, n_steps, pushes, live)
         for i in range(n):
@@ -219,3 +227,82 @@ class Lanes(LaneControl):
             self._take(self.pending, new_tally, packed_out)
             self.pending = None
         return self.concluded()
+
+
+class CLanes(LaneControl):
+    """The control step of a C-engine ``Lockstep``'s lanes (a ``loop.LaneControl``), one
+    rollout each: the measurement checks of all lanes at once (``CompiledStep.admit``),
+    then each live lane's step as one robot's ``Controller.step`` runs it
+    (``CompiledStep.prepare_lane`` into the lane's own output arrays; ``solve_one``, or
+    ``solve`` where another solver is the lane's; a refused measurement holds the torque)
+    and the lane's generated ``conclude`` in the same iteration. The step's record
+    (leading axis W) goes to ``conclude`` at once; the rows of lanes that did not step
+    keep their last values, which the plant metrics do not read (``live``). An exception
+    in a lane's step stops that lane alone, with the reason. ``arrays``: each lane's flat
+    (fixed, state, tally) at its start; ``state``, ``tally``: the lanes' flat vectors
+    (W, .) as the steps go."""
+
+    def __init__(self, lock: Lockstep, lanes: list[LaneState], arrays: list):
+        super().__init__()
+        self.lanes, self.cs = lanes, lock.step
+        self.fixed, self.state, self.tally = (np.stack(a) for a in zip(*arrays))
+        self.records: np.ndarray | None = None    # (W, .) the packed records, at the first
+        self.ok_at, self.tau_at = self.cs.ok_index, self.cs.tau_index
+
+    def _prepare(self, i: int, flat, reason: str, meas) -> tuple:
+        """Lane i's prepare from its admitted measurement: (its Prepared, packed QPs, their
+        views, the reason it is refused or "ok", the time it started)."""
+        cs, lane = self.cs, self.lanes[i]
+        t_step = time.perf_counter()
+        new, prep, packed, views = cs.prepare_lane(lane, self.fixed[i], self.state[i], flat)
+        self.state[i] = new
+        if reason == "ok" and not prep[self.ok_at]:    # the step's state tests
+            reason = cs.refused(lane, meas)
+        return prep, packed, views, reason, t_step
+
+    def _finish(self, i: int, prepared: tuple, meas, t_in: float):
+        """Lane i's step after its prepare: (its motor torques, tau, packed record)."""
+        cs, lane = self.cs, self.lanes[i]
+        prep, packed, views, reason, t_step = prepared
+        if reason != "ok":
+            cmd, sol = cs.hold(lane, reason, t_in), cs.no_solution
+        elif cs.fast(lane):
+            cmd, sol, _ = cs.solve_one(lane, packed, meas.t, t_in, t_step)
+        else:
+            cmds, sols, *_ = cs.solve([lane], np.asarray(packed)[None], (meas.t,), t_in, t_step,
+                                      views)
+            cmd, sol = cmds[0], sols[0]
+        self.tally[i], record = cs.conclude(self.fixed[i], self.tally[i], prep, sol)
+        return cmd.motor, float(prep[self.tau_at]), record
+
+    def step(self, meas: list, live) -> LaneStep:
+        t_in = time.perf_counter()
+        W = len(self.lanes)
+        failed: dict[int, str] = {}
+        motor: dict = {}
+        tau = np.zeros(W)
+        live_ids = np.flatnonzero(live).tolist()
+        fs, rs = self.cs.admit([self.lanes[i] for i in live_ids], [meas[i] for i in live_ids])
+        # every lane's prepare, then every lane's solve and conclude: the generated step's
+        # code, constants and work buffers stay in cache from one lane to the next
+        prepared = {}
+        for i, flat, reason in zip(live_ids, fs, rs):
+            if flat is None:     # from a simulator this cannot happen: a lane fault
+                failed[i] = f"measurement refused: {reason}"
+                continue
+            try:
+                prepared[i] = self._prepare(i, flat, reason, meas[i])
+            except Exception as e:  # noqa: BLE001 - this rollout fails, with the reason
+                failed[i] = f"{type(e).__name__}: {e}"
+        for i, got in prepared.items():
+            try:
+                motor[i], tau[i], record = self._finish(i, got, meas[i], t_in)
+            except Exception as e:  # noqa: BLE001 - this rollout fails, with the reason
+                failed[i] = f"{type(e).__name__}: {e}"
+                continue
+            if self.records is None:
+                self.records = np.zeros((W, record.size))
+            self.records[i] = record
+        if self.records is not None:
+            self.conclude(self.cs.unpack_record(self.records.copy())[0])
+        return LaneStep(motor, tau, failed)

@@ -1,7 +1,8 @@
 """The ``mujoco`` engine of ``safewbc sweep``: a pool of worker processes, one per core,
 each running whole rollouts with the deployment controller (``deploy.Controller``, PIQP)
 around C MuJoCo, several side by side (``sim.lockstep``: each rollout its own
-Controller lane and MjData, the jitted step vmapped over the lanes).
+Controller lane and MjData; the controller's generated C step lane by lane where a C
+compiler exists, else its jitted step vmapped over the lanes).
 
 Each worker is pinned to one CPU, compiles the scenario's controller once
 (``Controller.start`` and ``Lockstep.warm_up``; JAX's persistent compilation cache, when
@@ -113,7 +114,8 @@ class Lanes:
         run = job.run
         self.dt = run.control_dt
         self.n_steps, _, _ = run.schedule()
-        ctl = run.controller(engine="xla")    # the lanes run its XLA step, vmapped
+        # the lanes run its generated C where a C compiler exists, else its XLA step vmapped
+        ctl = run.controller(engine="auto")
         sim = SimRobot(ctl.motors.names, self.dt)
         sim.reset()
         ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), warm_up=False)

@@ -25,6 +25,7 @@ from safewbc_jax.deploy.codegen.emit import CFunction
 
 CFLAGS = ("-O3", "-std=c99", "-fPIC", "-fno-math-errno")
 MAX_UNITS = 8
+MAX_OUT_SETS = 64     # output sets whose addresses a CCall keeps (one per lane of a lockstep)
 _CTYPES = {"double": ctypes.c_double, "float": ctypes.c_float, "int32_t": ctypes.c_int32,
            "int64_t": ctypes.c_int64, "uint8_t": ctypes.c_uint8, "uint32_t": ctypes.c_uint32}
 
@@ -126,7 +127,7 @@ class CCall:
                 if o.size != want.size or o.dtype != want.dtype or not o.flags.c_contiguous:
                     raise ValueError(f"{self.fn.name}: an output array of shape {o.shape} "
                                      f"and dtype {o.dtype}, expected {want.shape} {want.dtype}")
-            if len(self._out_sets) >= 8:        # a caller making new sets: keep no old
+            if len(self._out_sets) >= MAX_OUT_SETS:  # a caller making new sets: keep no old
                 self._out_sets.clear()
             got = self._out_sets[id(out)] = (out, [o.ctypes.data for o in out])
         return got[1]
