@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from safewbc_jax.sweeps import pool
 from safewbc_jax.sweeps import table as table_mod
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -343,8 +344,10 @@ def test_mujoco_engine_killed_resumed_and_any_worker_count_give_one_table(mujoco
                                       err_msg=name)
     for out in (s["c"], s["d"]):
         manifest = __import__("json").loads((out / table_mod.MANIFEST).read_text())
-        # the workers ran BATCH lanes side by side, not 16: no lane a chunk cannot fill
+        # the workers ran BATCH lanes side by side, not 16: no lane a chunk cannot fill;
+        # their step was the generated C where this machine has a compiler (CI has)
         assert manifest["engine"] == "mujoco" and manifest["lockstep"] == BATCH
+        assert manifest["lanes"] == pool.lanes_engine()
     # resuming the mujoco table with the other engine is refused, naming the engine
     assert s["other"].returncode == 2
     assert "engine = 'mujoco'" in s["other"].stderr and "--engine" in s["other"].stderr

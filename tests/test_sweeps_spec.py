@@ -316,12 +316,13 @@ def test_a_second_plan_never_replaces_the_first(tmp_path):
 def test_manifest_round_trips_and_refuses_a_bad_key(tmp_path):
     """The manifest's JSON round-trips (the same record, the same text, the keys in the
     file's order); a file with a key missing or unknown is refused naming the key and the
-    file; a folder begun before objective_weights, safe_sets, engine and lockstep reads
-    with their defaults (lockstep 1 on the mujoco engine)."""
+    file; a folder begun before objective_weights, safe_sets, engine, lockstep and lanes
+    reads with their defaults (lockstep 1 and lanes "xla" on the mujoco engine); resuming
+    with the other lanes' step is refused, naming it."""
     from safewbc_jax.sweeps.run import _manifest
 
     man = manifest(objective_weights={"tracking_rms.arms": 2.0}, safe_sets=("/x/y.py:S",),
-                   engine="mujoco", lockstep=8)
+                   engine="mujoco", lockstep=8, lanes="c")
     text = man.to_json()
     assert table_mod.Manifest.from_json(text) == man
     assert table_mod.Manifest.from_json(json.loads(text)) == man
@@ -329,15 +330,27 @@ def test_manifest_round_trips_and_refuses_a_bad_key(tmp_path):
     assert list(json.loads(text)) == [
         "format", "fingerprint", "seed", "batch", "n_rollouts", "n_chunks", "scenario",
         "spec_path", "axes", "barriers", "monitors", "outputs", "target", "violation_tol",
-        "repeats", "objective", "objective_weights", "safe_sets", "engine", "lockstep"]
-    assert "lockstep" not in json.loads(manifest().to_json())      # the mjx engine's
+        "repeats", "objective", "objective_weights", "safe_sets", "engine", "lockstep",
+        "lanes"]
+    assert not {"lockstep", "lanes"} & set(json.loads(manifest().to_json()))  # mjx's
     # a spec's manifest, written and read back by the folder
     spec = load_spec(ROOT / "sweeps" / "kalpha_poles.toml")
     assert spec.fingerprint() == "54a9cd7467753d3c"     # folders begun before stay valid
-    mine = _manifest(spec, 3, 16, 7, "mujoco", 8)
+    mine = _manifest(spec, 3, 16, 7, "mujoco", 8, "c")
     out = tmp_path / "sw"
     assert table_mod.open_manifest(out, mine) == mine == table_mod.read_manifest(out)
     assert (out / table_mod.MANIFEST).read_text() == mine.to_json()
+    with pytest.raises(table_mod.TableError, match=r"lanes = 'c', this one has 'xla' "
+                                                   r"\(another step of the mujoco engine"):
+        table_mod.open_manifest(out, dataclasses.replace(mine, lanes="xla"))
+    # the lanes a sweep into a folder runs: this machine's, but XLA's where the folder's
+    # table was begun with XLA lanes (XLA runs anywhere; the table keeps one rounding)
+    from safewbc_jax.sweeps.pool import lanes_engine
+    from safewbc_jax.sweeps.run import _lanes
+    assert _lanes(tmp_path / "none") == _lanes(out) == lanes_engine()
+    xla = tmp_path / "xla"
+    table_mod.open_manifest(xla, dataclasses.replace(mine, lanes="xla"))
+    assert _lanes(xla) == "xla"
     # a missing or an unknown key, named with the file
     path = out / table_mod.MANIFEST
     for key in ("seed", "fingerprint"):
@@ -356,11 +369,12 @@ def test_manifest_round_trips_and_refuses_a_bad_key(tmp_path):
         table_mod.Manifest.from_json({**json.loads(text), "axes": "x"}, "m.json")
     # a folder from before the later keys
     old = {k: v for k, v in json.loads(text).items()
-           if k not in ("objective_weights", "safe_sets", "engine", "lockstep")}
+           if k not in ("objective_weights", "safe_sets", "engine", "lockstep", "lanes")}
     got = table_mod.Manifest.from_json(old)
     assert (got.engine, got.safe_sets, got.objective_weights, got.lockstep) == ("mjx", (), {},
                                                                                 None)
-    assert table_mod.Manifest.from_json({**old, "engine": "mujoco"}).lockstep == 1
+    got = table_mod.Manifest.from_json({**old, "engine": "mujoco"})
+    assert (got.lockstep, got.lanes) == (1, "xla")
 
 
 def test_spec_tables_are_typed_and_the_pool_job_pickles(tmp_path):

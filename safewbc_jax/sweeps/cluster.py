@@ -22,7 +22,7 @@ import socket
 from pathlib import Path
 import warnings
 
-from safewbc_jax.sweeps.pool import Job
+from safewbc_jax.sweeps.pool import Job, lanes_engine
 
 RETRIES = 2            # runs of a chunk's task after its worker died
 CONNECT_TIMEOUT_S = 5.0
@@ -147,7 +147,7 @@ def run_chunk(job: Job, params, push, perturb_v) -> dict:
         runtime.use_cpu()
         from safewbc_jax.sweeps import pool
 
-        key = (job.run, job.lockstep)
+        key = (job.run, job.lockstep, job.lanes)
         if key not in _LANES:
             _LANES.clear()
             _LANES[key] = pool.Lanes(job)
@@ -201,7 +201,7 @@ class RayExecutor:
     (chunk, None, reason) for a chunk whose task failed ``RETRIES`` + 1 times or raised."""
 
     def __init__(self, spec, engine: str, *, lockstep: int, address: str | None = LOCAL,
-                 cache_dir: str | None = None, quiet: bool = False):
+                 cache_dir: str | None = None, quiet: bool = False, lanes: str | None = None):
         connect(address, quiet)
         if cache_dir is None:
             import jax
@@ -210,7 +210,11 @@ class RayExecutor:
         self.engine = engine
         self.pads = engine == "mjx"          # one compiled batch shape; the pool needs none
         self.lockstep = lockstep
-        self.job = Job(spec.run, lockstep, cache_dir, engine, spec.precision)
+        # the lanes' step of the driver's machine (or the table's), for every task: a node
+        # without a C compiler then fails its chunks with that reason, rather than rounding
+        # otherwise
+        self.lanes = lanes_engine() if lanes is None else lanes
+        self.job = Job(spec.run, lockstep, cache_dir, engine, spec.precision, self.lanes)
 
     def describe(self) -> str:
         r = _ray().cluster_resources()

@@ -2,7 +2,7 @@
 each running whole rollouts with the deployment controller (``deploy.Controller``, PIQP)
 around C MuJoCo, several side by side (``sim.lockstep``: each rollout its own
 Controller lane and MjData; the controller's generated C step lane by lane where a C
-compiler exists, else its jitted step vmapped over the lanes).
+compiler exists, else its jitted step vmapped over the lanes: ``lanes_engine``).
 
 Each worker is pinned to one CPU, compiles the scenario's controller once
 (``Controller.start`` and ``Lockstep.warm_up``; JAX's persistent compilation cache, when
@@ -43,14 +43,26 @@ START_TIMEOUT_S = 1800.0      # a worker's import, compile and warm-up
 class Job(NamedTuple):
     """What a worker process needs to roll out a sweep's
     chunks: the sweep's ``run`` (``SweepSpec.run``, a ``runspec.RunSpec``), the lockstep
-    width, JAX's compilation cache folder (None: none), the engine, and the mjx engine's
-    precision (``BatchConfig.precision``). Pickled to each worker."""
+    width, JAX's compilation cache folder (None: none), the engine, the mjx engine's
+    precision (``BatchConfig.precision``) and the mujoco engine's lanes' step
+    (``lanes_engine``: "c" or "xla", the same for every worker of a sweep: the two round
+    differently). Pickled to each worker."""
 
     run: Any
     lockstep: int
     cache_dir: str | None = None
     engine: str = "mujoco"
     precision: str = "float64"
+    lanes: str = "xla"
+
+
+def lanes_engine() -> str:
+    """The step the mujoco engine's lanes run on this machine: "c" (the generated C, one
+    lane after another: ``sim.lockstep.CLanes``) where a C compiler exists, else "xla"
+    (the jitted step vmapped over the lanes), as ``Controller(engine="auto")`` chooses."""
+    from safewbc_jax.deploy.codegen.build import compiler
+
+    return "c" if compiler() is not None else "xla"
 
 
 def lockstep_width(batch) -> int:
@@ -114,8 +126,7 @@ class Lanes:
         run = job.run
         self.dt = run.control_dt
         self.n_steps, _, _ = run.schedule()
-        # the lanes run its generated C where a C compiler exists, else its XLA step vmapped
-        ctl = run.controller(engine="auto")
+        ctl = run.controller(engine=job.lanes)    # the lanes' step: C, or XLA vmapped
         sim = SimRobot(ctl.motors.names, self.dt)
         sim.reset()
         ctl.start(*sim.sm.to_controller(sim.d.qpos, sim.d.qvel), warm_up=False)
@@ -247,11 +258,14 @@ class PoolExecutor:
 
     def __init__(self, spec, workers: int | None = None, *, retries: int = 1,
                  rollout_timeout: float | None = None, cache_dir: str | None = None,
-                 lockstep: int = LOCKSTEP):
+                 lockstep: int = LOCKSTEP, lanes: str | None = None):
         if int(lockstep) != lockstep or lockstep < 1:
             raise ValueError(f"lockstep {lockstep}: must be an integer >= 1")
+        if lanes not in (None, "c", "xla"):
+            raise ValueError(f"lanes {lanes!r}: 'c', 'xla' or None (lanes_engine())")
         self.spec = spec
         self.lockstep = int(lockstep)
+        self.lanes = lanes_engine() if lanes is None else lanes
         self.n_workers = check_workers(workers)
         self.retries = int(retries)
         self.rollout_timeout = rollout_timeout
@@ -267,7 +281,7 @@ class PoolExecutor:
             import jax
 
             self.cache_dir = getattr(jax.config, "jax_compilation_cache_dir", None)
-        return Job(self.spec.run, self.lockstep, self.cache_dir)
+        return Job(self.spec.run, self.lockstep, self.cache_dir, lanes=self.lanes)
 
     def _spawn(self, cpu) -> _Slot:
         import multiprocessing as mp

@@ -180,7 +180,7 @@ def _resolve(spec: SweepSpec, out: Path, batch, seed, engine: str, workers, ray,
 
 
 def _manifest(spec: SweepSpec, seed: int, batch: int, n_chunks: int, engine: str,
-              width: int) -> table_mod.Manifest:
+              width: int, lanes: str | None) -> table_mod.Manifest:
     """The folder's plan (``sweep.json``): what a resumed or second host's run must share."""
     return table_mod.Manifest(
         fingerprint=spec.fingerprint(), seed=seed, batch=batch, n_rollouts=spec.n_rollouts,
@@ -191,7 +191,23 @@ def _manifest(spec: SweepSpec, seed: int, batch: int, n_chunks: int, engine: str
         objective=tuple(spec.tune.objective), objective_weights=dict(spec.tune.weights),
         safe_sets=tuple(spec.safe_sets), engine=engine,
         # rollouts side by side per worker: rounding depends on it
-        lockstep=width if engine == "mujoco" else None)
+        lockstep=width if engine == "mujoco" else None,
+        lanes=lanes if engine == "mujoco" else None)   # C or XLA lanes: rounding too
+
+
+def _lanes(out: Path) -> str:
+    """The mujoco engine's lanes' step for folder ``out``: this machine's
+    (``pool.lanes_engine``), but XLA's where ``out`` holds a table begun with XLA lanes
+    (a C compiler missing there, or a folder from before the C lanes): XLA runs anywhere,
+    and the table keeps one rounding."""
+    from safewbc_jax.sweeps import pool as pool_mod
+
+    try:
+        if table_mod.read_manifest(out).lanes == "xla":
+            return "xla"
+    except table_mod.TableError:      # no folder yet, or one that open_manifest refuses
+        pass
+    return pool_mod.lanes_engine()
 
 
 def plan_sweep(spec: SweepSpec, out, *, batch=None, seed=None, executor=None,
@@ -209,7 +225,8 @@ def plan_sweep(spec: SweepSpec, out, *, batch=None, seed=None, executor=None,
                                             hosts, host_index, quiet)
     chunks = table_mod.plan_chunks(spec.n_rollouts, batch)
     width = getattr(executor, "lockstep", None) or pool_mod.lockstep_width(batch)
-    manifest = _manifest(spec, seed, batch, len(chunks), engine, width)
+    lanes = getattr(executor, "lanes", None) or _lanes(out)
+    manifest = _manifest(spec, seed, batch, len(chunks), engine, width, lanes)
     base, std, settings = preflight(spec, seed, check_poles=check_poles)
     table_mod.open_manifest(out, manifest, spec_text)
     mine = {k for k in range(len(chunks)) if k % hosts == host_index}
@@ -275,8 +292,9 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         from safewbc_jax.sweeps import cluster
 
         executor = cluster.RayExecutor(spec, plan.engine, lockstep=plan.width, address=ray,
-                                       quiet=quiet)
-    execute = (executor or (pool_mod.PoolExecutor(spec, plan.workers, lockstep=plan.width)
+                                       quiet=quiet, lanes=plan.manifest.lanes)
+    execute = (executor or (pool_mod.PoolExecutor(spec, plan.workers, lockstep=plan.width,
+                                                  lanes=plan.manifest.lanes)
                             if own else real_executor()))
     key = (None if executor is not None or plan.engine != "mjx" else
            (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt,

@@ -39,8 +39,9 @@ class Manifest:
     """A sweep folder's plan (``sweep.json``): what a resumed or second host's run must
     share. The fields are the file's keys, in its order;
     ``objective_weights``, ``safe_sets`` and ``engine`` take their defaults in folders
-    begun before them, ``lockstep`` (the mujoco engine's only) 1 in a mujoco folder begun
-    before the lockstep."""
+    begun before them; ``lockstep`` and ``lanes`` (the mujoco engine's only: its lockstep
+    width and its lanes' step, "c" or "xla", ``pool.lanes_engine``) are 1 and "xla" in a
+    mujoco folder begun before them."""
 
     format: int = 1
     fingerprint: str
@@ -62,13 +63,14 @@ class Manifest:
     safe_sets: tuple[str, ...] = ()
     engine: str = "mjx"
     lockstep: int | None = None
+    lanes: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """The file's JSON object (``lockstep`` only where it is set)."""
+        """The file's JSON object (``lockstep`` and ``lanes`` only where they are set)."""
         d: dict[str, Any] = {}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if f.name == "lockstep" and v is None:
+            if f.name in ("lockstep", "lanes") and v is None:
                 continue
             d[f.name] = (list(v) if isinstance(v, tuple) else dict(v) if isinstance(v, dict)
                          else v)
@@ -112,6 +114,8 @@ class Manifest:
             kw[k] = v
         if kw.get("engine") == "mujoco" and "lockstep" not in kw:
             kw["lockstep"] = 1      # a mujoco table from before sim.lockstep: one at a time
+        if kw.get("engine") == "mujoco" and "lanes" not in kw:
+            kw["lanes"] = "xla"     # from before the C lanes
         return cls(**kw)
 
 
@@ -180,7 +184,9 @@ def open_manifest(out: Path, manifest: Manifest, spec_text: str | None = None) -
     for key, what in (("fingerprint", "a different spec"), ("seed", "another --seed"),
                       ("batch", "another --batch"), ("n_rollouts", "a different plan"),
                       ("engine", "another --engine"),
-                      ("lockstep", "another lockstep width: another version of the engine")):
+                      ("lockstep", "another lockstep width: another version of the engine"),
+                      ("lanes", "another step of the mujoco engine's lanes: a C compiler "
+                                "found here or not, or another version of the engine")):
         was, now = getattr(old, key), getattr(manifest, key)
         if was != now:
             raise TableError(
