@@ -325,3 +325,20 @@ def test_slices_of_a_block_assembly_read_the_blocks_and_unread_results_are_dropp
     lib = build.load(build.build(emit.c_file([fn]))[0])
     for got, want in zip(build.CCall(lib, fn)(*args), jax.jit(f)(*args)):
         np.testing.assert_array_equal(got, np.asarray(want))
+
+
+def test_a_compiler_that_cannot_build_is_not_used(monkeypatch):
+    """``build.works``: True with the system compiler (CI has gcc), False where ``$CC``
+    names a program that builds nothing (``false``): the sweep's lanes then run XLA's
+    step (``pool.lanes_engine``)."""
+    from safewbc_jax.sweeps.pool import lanes_engine
+
+    build.works.cache_clear()
+    try:
+        assert build.works() and lanes_engine() == "c"
+        monkeypatch.setenv("CC", "false")
+        build.works.cache_clear()
+        assert build.compiler() == "false" and not build.works() and lanes_engine() == "xla"
+    finally:
+        monkeypatch.delenv("CC")
+        build.works.cache_clear()

@@ -150,6 +150,29 @@ class FakeExecutor:
         return {"fell": np.zeros(b, bool), "h_min.left_fist": np.full(b, 0.01)}
 
 
+def test_a_callers_mujoco_executor_runs_the_tables_lanes(spec, tmp_path):
+    """A mujoco executor made by the caller without a lanes' step (``lanes`` None, as
+    ``PoolExecutor``'s default) runs the folder's: a new folder gets this machine's
+    (``pool.lanes_engine``), a table begun with XLA lanes stays on them."""
+    import dataclasses
+
+    from safewbc_jax.sweeps import pool, table
+    from safewbc_jax.sweeps.run import run_sweep
+
+    ex = FakeExecutor()
+    ex.lanes = None
+    run_sweep(spec, tmp_path / "new", executor=ex, check_poles=False, engine="mujoco",
+              quiet=True)
+    assert ex.lanes == pool.lanes_engine() == table.read_manifest(tmp_path / "new").lanes
+    old = tmp_path / "old"
+    man = table.read_manifest(tmp_path / "new")
+    table.open_manifest(old, dataclasses.replace(man, lanes="xla"))
+    ex = FakeExecutor()
+    ex.lanes = None
+    run_sweep(spec, old, executor=ex, check_poles=False, engine="mujoco", quiet=True)
+    assert ex.lanes == "xla" and ex.calls == 2
+
+
 def test_run_sweep_bar_reports_the_rollouts(spec, tmp_path, monkeypatch):
     from safewbc_jax.ui import progress as progress_mod
     from safewbc_jax.sweeps.run import run_sweep

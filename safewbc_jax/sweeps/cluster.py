@@ -135,7 +135,7 @@ def _resources(engine: str) -> dict:
 
 # --- what runs in a Ray worker process
 
-_LANES: dict = {}       # (run, lockstep) -> pool.Lanes: compiled once per worker process
+_LANES: dict = {}       # (run, lockstep, lanes) -> pool.Lanes: made once per worker process
 
 
 def run_chunk(job: Job, params, push, perturb_v) -> dict:
@@ -210,11 +210,11 @@ class RayExecutor:
         self.engine = engine
         self.pads = engine == "mjx"          # one compiled batch shape; the pool needs none
         self.lockstep = lockstep
-        # the lanes' step of the driver's machine (or the table's), for every task: a node
-        # without a C compiler then fails its chunks with that reason, rather than rounding
-        # otherwise
-        self.lanes = lanes_engine() if lanes is None else lanes
-        self.job = Job(spec.run, lockstep, cache_dir, engine, spec.precision, self.lanes)
+        # the mujoco lanes' step, the same for every task (None: the table's, which
+        # run_sweep sets, else the driver's): a node without a working C compiler then
+        # fails its chunks of C lanes with that reason, rather than rounding otherwise
+        self.lanes = lanes
+        self.job = Job(spec.run, lockstep, cache_dir, engine, spec.precision)
 
     def describe(self) -> str:
         r = _ray().cluster_resources()
@@ -229,7 +229,7 @@ class RayExecutor:
         from ray.exceptions import RayError
 
         task = ray.remote(run_chunk).options(max_retries=RETRIES, **_resources(self.engine))
-        job = ray.put(self.job)
+        job = ray.put(self.job._replace(lanes=self.lanes or lanes_engine()))
         refs = {task.remote(job, params, push, dv): k for k, params, push, dv in jobs}
         while refs:
             done, _ = ray.wait(list(refs), num_returns=1)

@@ -58,18 +58,20 @@ class Job(NamedTuple):
 
 def lanes_engine() -> str:
     """The step the mujoco engine's lanes run on this machine: "c" (the generated C, one
-    lane after another: ``sim.lockstep.CLanes``) where a C compiler exists, else "xla"
-    (the jitted step vmapped over the lanes), as ``Controller(engine="auto")`` chooses."""
-    from safewbc_jax.deploy.codegen.build import compiler
+    lane after another: ``sim.lockstep.CLanes``) where a C compiler exists and builds a
+    shared library (``build.works``), else "xla" (the jitted step vmapped over the
+    lanes)."""
+    from safewbc_jax.deploy.codegen.build import works
 
-    return "c" if compiler() is not None else "xla"
+    return "c" if works() else "xla"
 
 
 def lockstep_width(batch) -> int:
     """The lockstep width of a pool whose chunks hold at most ``batch`` rollouts: ``LOCKSTEP``,
     or ``batch`` where that is smaller (None, or "auto" before it is resolved:
-    ``LOCKSTEP``). Every lane of the vmapped step is computed, filled or not, so narrow
-    chunks run faster at their own width (benchmarks/README.md, "Figures behind design choices")."""
+    ``LOCKSTEP``). Every lane of XLA's vmapped step is computed, filled or not, so narrow
+    chunks run faster at their own width (benchmarks/README.md, "Figures behind design
+    choices"); C lanes cost nothing unfilled."""
     if isinstance(batch, (int, np.integer)) and batch >= 1:
         return min(LOCKSTEP, int(batch))
     return LOCKSTEP
@@ -110,8 +112,9 @@ def _die_with_parent(parent_pid: int):
 class Lanes:
     """One process's deployment loops of a sweep's run: the scenario's controller compiled
     once (``Controller.start`` and ``Lockstep.warm_up``), then any number of lockstep
-    groups. ``job``: its run, cache_dir and lockstep (the width of ``sim.lockstep.Lockstep``).
-    Start JAX on the CPU (``safewbc_jax.use_cpu``) first."""
+    groups. ``job``: its run, cache_dir, lockstep (the width of ``sim.lockstep.Lockstep``)
+    and lanes (the controller's engine: "c" or "xla"). Start JAX on the CPU
+    (``safewbc_jax.use_cpu``) first."""
 
     def __init__(self, job: Job):
         from safewbc_jax.base import runtime
@@ -265,7 +268,7 @@ class PoolExecutor:
             raise ValueError(f"lanes {lanes!r}: 'c', 'xla' or None (lanes_engine())")
         self.spec = spec
         self.lockstep = int(lockstep)
-        self.lanes = lanes_engine() if lanes is None else lanes
+        self.lanes = lanes      # None: the table's, which run_sweep sets, else lanes_engine()
         self.n_workers = check_workers(workers)
         self.retries = int(retries)
         self.rollout_timeout = rollout_timeout
@@ -281,7 +284,8 @@ class PoolExecutor:
             import jax
 
             self.cache_dir = getattr(jax.config, "jax_compilation_cache_dir", None)
-        return Job(self.spec.run, self.lockstep, self.cache_dir, lanes=self.lanes)
+        return Job(self.spec.run, self.lockstep, self.cache_dir,
+                   lanes=self.lanes or lanes_engine())
 
     def _spawn(self, cpu) -> _Slot:
         import multiprocessing as mp

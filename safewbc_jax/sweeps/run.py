@@ -296,6 +296,8 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
     execute = (executor or (pool_mod.PoolExecutor(spec, plan.workers, lockstep=plan.width,
                                                   lanes=plan.manifest.lanes)
                             if own else real_executor()))
+    if getattr(execute, "lanes", "") is None and plan.manifest.lanes is not None:
+        execute.lanes = plan.manifest.lanes   # a caller's executor: the table's lanes
     key = (None if executor is not None or plan.engine != "mjx" else
            (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt,
             plan.batch, spec.safe_sets))

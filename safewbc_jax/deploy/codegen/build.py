@@ -11,6 +11,7 @@ second start loads the library without compiling.
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import math
 import os
@@ -36,6 +37,22 @@ def compiler() -> str | None:
         if cand and shutil.which(cand):
             return cand
     return None
+
+
+@functools.lru_cache(maxsize=1)
+def works() -> bool:
+    """Whether ``compiler()`` exists and builds a shared library with ``CFLAGS`` (a tiny
+    one, once per process): a toolchain without its C library or linker fails here, not
+    at the first generated step."""
+    cc = compiler()
+    if cc is None:
+        return False
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "probe.c"
+        src.write_text("#include <math.h>\ndouble swbc_probe(double x) { return sqrt(x); }\n")
+        r = subprocess.run([cc, *CFLAGS, "-shared", "-o", str(Path(tmp) / "probe.so"),
+                            str(src), "-lm"], capture_output=True, text=True)
+    return r.returncode == 0
 
 
 def cache_dir() -> Path:
