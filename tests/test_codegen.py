@@ -342,3 +342,21 @@ def test_a_compiler_that_cannot_build_is_not_used(monkeypatch):
     finally:
         monkeypatch.delenv("CC")
         build.works.cache_clear()
+
+
+def test_a_ccall_reads_an_array_passed_again_afresh():
+    """``CCall`` keeps the address of the array last passed at each input: the same array,
+    changed in place, gives the new result; another array, or one it must convert (a list,
+    float32), is read as given; a call with the wrong number of inputs is refused."""
+    def f(x, y):
+        return jnp.sin(x) * y
+    x, y = _r(7), _r(7)
+    fn = emit.emit_function("again", jax.make_jaxpr(f)(x, y))
+    call = build.CCall(build.load(build.build(emit.c_file([fn]))[0]), fn)
+    np.testing.assert_allclose(call(x, y)[0], np.sin(x) * y, rtol=RTOL)
+    x[:] = _r(7)
+    np.testing.assert_allclose(call(x, y)[0], np.sin(x) * y, rtol=RTOL)   # same array, new data
+    z = y.astype(np.float32).tolist()
+    np.testing.assert_allclose(call(x.copy(), z)[0], np.sin(x) * np.asarray(z), rtol=RTOL)
+    with pytest.raises(ValueError, match="1 inputs, expected 2"):
+        call(x)
