@@ -538,6 +538,20 @@ class CompiledStep:
         """One QP's SolveResult (``result.row``'s types) from its flat solve record."""
         return row(SolveResult(*(np.asarray(f)[None] for f in self.layouts.sol.unpack(sol))), 0)
 
+    def solve_lane(self, lane: LaneState, reason: str, packed, views, t: float, t_in: float,
+                   t_step: float) -> tuple[Command, np.ndarray, np.ndarray | None]:
+        """The host side of one lane's step after ``prepare_lane`` (``reason``: "ok", or why
+        its measurement is refused): ``hold`` where refused, ``solve_one`` where ``fast``,
+        else ``solve`` of the one lane. Returns (the Command; conclude's flat solve record;
+        X, or None where there is no usable one)."""
+        if reason != "ok":         # the torque is held
+            return self.hold(lane, reason, t_in), self.no_solution, None
+        if self.fast(lane):        # the C engine with PIQP: one call after the solve
+            return self.solve_one(lane, packed, t, t_in, t_step)
+        cmds, sols, _, xs, usable = self.solve([lane], np.asarray(packed)[None], (t,), t_in,
+                                               t_step, views)
+        return cmds[0], sols[0], xs[0] if usable[0] else None
+
     def hold(self, lane: LaneState, reason: str, t_in: float) -> Command:
         """A refused measurement's step: no solve, the lane's last good torque held."""
         lane.last_times = (np.nan, np.nan)

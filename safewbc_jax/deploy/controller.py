@@ -335,14 +335,7 @@ class Controller:
                                                            self._state, flat)
         if reason == "ok" and not np.asarray(prep)[self._ok_at]:   # the state tests
             reason, self._record = cs.refused(self.lane, meas), None
-        if reason != "ok":         # refused by the jitted step too: the torque is held
-            cmd, sol, x = cs.hold(self.lane, reason, t_in), cs.no_solution, None
-        elif cs.fast(self.lane):   # the C engine with PIQP: one call after the solve
-            cmd, sol, x = cs.solve_one(self.lane, packed, meas.t, t_in, t_step)
-        else:
-            cmds, sols, _, xs, usable = cs.solve([self.lane], np.asarray(packed)[None],
-                                                 (meas.t,), t_in, t_step, views)
-            cmd, sol, x = cmds[0], sols[0], xs[0] if usable[0] else None
+        cmd, sol, x = cs.solve_lane(self.lane, reason, packed, views, meas.t, t_in, t_step)
         if reason == "ok":
             self.lane.last_inputs = (state_in, flat)
         if self.keep_metrics:

@@ -233,8 +233,9 @@ class CLanes(LaneControl):
     """The control step of a C-engine ``Lockstep``'s lanes (a ``loop.LaneControl``), one
     rollout each: the measurement checks of all lanes at once (``CompiledStep.admit``),
     then each live lane's step as one robot's ``Controller.step`` runs it
-    (``CompiledStep.prepare_lane`` into the lane's own output arrays; ``solve_one``, or
-    ``solve`` where another solver is the lane's; a refused measurement holds the torque)
+    (``CompiledStep.prepare_lane`` into the lane's own output arrays, then
+    ``CompiledStep.solve_lane``: PIQP and the generated acceptance, another solver's
+    ``solve``, or the torque held where the measurement is refused)
     and the lane's generated ``conclude`` in the same iteration. The step's record
     (leading axis W) goes to ``conclude`` at once; the rows of lanes that did not step
     keep their last values, which the plant metrics do not read (``live``). An exception
@@ -264,14 +265,7 @@ class CLanes(LaneControl):
         """Lane i's step after its prepare: (its motor torques, tau, packed record)."""
         cs, lane = self.cs, self.lanes[i]
         prep, packed, views, reason, t_step = prepared
-        if reason != "ok":
-            cmd, sol = cs.hold(lane, reason, t_in), cs.no_solution
-        elif cs.fast(lane):
-            cmd, sol, _ = cs.solve_one(lane, packed, meas.t, t_in, t_step)
-        else:
-            cmds, sols, *_ = cs.solve([lane], np.asarray(packed)[None], (meas.t,), t_in, t_step,
-                                      views)
-            cmd, sol = cmds[0], sols[0]
+        cmd, sol, _ = cs.solve_lane(lane, reason, packed, views, meas.t, t_in, t_step)
         self.tally[i], record = cs.conclude(self.fixed[i], self.tally[i], prep, sol)
         return cmd.motor, float(prep[self.tau_at]), record
 

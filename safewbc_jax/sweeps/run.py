@@ -292,12 +292,11 @@ def run_sweep(spec: SweepSpec, out, *, batch: int | None = None, seed: int | Non
         from safewbc_jax.sweeps import cluster
 
         executor = cluster.RayExecutor(spec, plan.engine, lockstep=plan.width, address=ray,
-                                       quiet=quiet, lanes=plan.manifest.lanes)
-    execute = (executor or (pool_mod.PoolExecutor(spec, plan.workers, lockstep=plan.width,
-                                                  lanes=plan.manifest.lanes)
+                                       quiet=quiet)
+    execute = (executor or (pool_mod.PoolExecutor(spec, plan.workers, lockstep=plan.width)
                             if own else real_executor()))
     if getattr(execute, "lanes", "") is None and plan.manifest.lanes is not None:
-        execute.lanes = plan.manifest.lanes   # a caller's executor: the table's lanes
+        execute.lanes = plan.manifest.lanes   # an executor without its lanes: the table's
     key = (None if executor is not None or plan.engine != "mjx" else
            (spec.scenario, spec.barrier, spec.duration, spec.settle, spec.control_dt,
             plan.batch, spec.safe_sets))
