@@ -170,6 +170,39 @@ def test_rule_against_xla(compiled, name):
                                    err_msg=f"{name} output {k}")
 
 
+def test_the_cpus_isa_level_computes_the_same_bits(compiled):
+    """Every rule's C built for this CPU's x86-64 level (``build.isa_flags``: AVX2
+    vectors) gives the same bits as the same C built for the baseline x86-64:
+    contraction is off and no reduction is reordered, so the level changes the speed and
+    nothing else (C lanes held to one robot's loop exactly, caches per level)."""
+    if not build.isa_flags():
+        pytest.skip("no x86-64 level above the baseline here")
+    calls, _ = compiled
+    fns = {n: c.fn for n, c in calls.items()}
+    base = build.load(build.build(emit.c_file(list(fns.values())), isa=False)[0])
+    for name, fn in fns.items():
+        got = calls[name](*CASES[name][1])
+        want = build.CCall(base, fn)(*CASES[name][1])
+        for k, (g, w) in enumerate(zip(got, want)):
+            np.testing.assert_array_equal(g, w, err_msg=f"{name} output {k}")
+
+
+def test_isa_level_from_the_compilers_macros():
+    """``build.isa_level``: the highest x86-64 level (v2 or v3) whose features are all
+    defined, each level needing the ones below it."""
+    v2 = {"__SSE3__", "__SSSE3__", "__SSE4_1__", "__SSE4_2__", "__POPCNT__"}
+    v3 = v2 | {"__AVX__", "__AVX2__", "__BMI__", "__BMI2__", "__F16C__", "__FMA__",
+               "__LZCNT__", "__MOVBE__"}
+    v4 = v3 | {"__AVX512F__", "__AVX512BW__", "__AVX512CD__", "__AVX512DQ__", "__AVX512VL__"}
+    assert build.isa_level(set()) is None
+    assert build.isa_level(v2 - {"__POPCNT__"}) is None
+    assert build.isa_level(v2) == "x86-64-v2"
+    assert build.isa_level(v3 - {"__FMA__"}) == "x86-64-v2"
+    assert build.isa_level(v3) == "x86-64-v3"
+    assert build.isa_level(v4) == "x86-64-v3"                  # v4 is not used (build.py)
+    assert build.isa_level(v4 - v2 | {"__SSE3__"}) is None     # AVX-512 without SSE4
+
+
 def test_shapes_of_the_same_rule(monkeypatch, tmp_path):
     """One rule (a batched matmul with broadcasting) at several shapes, from 0-d to 3-d."""
     monkeypatch.setenv("SAFEWBC_C_CACHE", str(tmp_path))

@@ -1,11 +1,20 @@
 """Build emitted C with the system compiler and call it on numpy arrays.
 
-    lib = build(source_text, flags)          # a shared library, cached by the source's hash
-    fn = CCall(lib, cfunction)               # fn(*inputs) -> outputs (numpy)
+    path, _ = build(source_text)             # a shared library, cached by the source's hash
+    fn = CCall(load(path), cfunction)        # fn(*inputs) -> outputs (numpy)
 
 The build is cached in ``cache_dir()`` (``$SAFEWBC_C_CACHE``, else
 ``~/.cache/safewbc-jax/c``) under the SHA-256 of the source, the compiler and its flags, so a
 second start loads the library without compiling.
+
+Flags: ``CFLAGS`` and, on x86-64, the highest microarchitecture level of the x86-64 psABI
+(``-march=x86-64-v2``, or ``-v3`` without FMA) that this CPU has and the compiler takes
+(``isa_flags``): wider vectors (AVX2) for the generated loops. Floating-point contraction
+is off (``-ffp-contract=off``, which ISO C mode also implies for gcc but not for clang; and
+no FMA instructions at all), and the generated C has no reductions the compiler may
+reorder, so every level computes the same bits as the baseline build
+(``tests/test_codegen.py``, ``tests/test_deploy_same_qp.py``); a cache shared by machines
+of different levels holds one library per level.
 """
 
 from __future__ import annotations
@@ -15,6 +24,7 @@ import functools
 import hashlib
 import math
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
@@ -24,7 +34,7 @@ import numpy as np
 
 from safewbc_jax.deploy.codegen.emit import CFunction
 
-CFLAGS = ("-O3", "-std=c99", "-fPIC", "-fno-math-errno")
+CFLAGS = ("-O3", "-std=c99", "-fPIC", "-fno-math-errno", "-ffp-contract=off")
 MAX_UNITS = 8
 MAX_OUT_SETS = 64     # output sets whose addresses a CCall keeps (one per lane of a lockstep)
 _CTYPES = {"double": ctypes.c_double, "float": ctypes.c_float, "int32_t": ctypes.c_int32,
@@ -45,12 +55,68 @@ def works() -> bool:
     one, once per process): a toolchain without its C library or linker fails here, not
     at the first generated step."""
     cc = compiler()
-    if cc is None:
-        return False
+    return cc is not None and _builds(cc, CFLAGS)
+
+
+# The compiler's macros for -march=native that each x86-64 psABI level requires (its
+# features as gcc and clang name them), and the flags it is built with. v3 is built without
+# FMA: gcc 12.2 at -O3 formed fused multiply-adds in vectorised loops of the generated step
+# despite -ffp-contract=off (the squat's metrics record differed from the baseline build's
+# in the last bit; with -mno-fma, every output of every step of five scenarios was equal).
+# v4 (AVX-512) is left out: AVX-512F brings its own fused multiply-add, and with
+# -march=x86-64-v4 -mno-fma the walk's step still differed in the last bit.
+_LEVELS = (
+    ("x86-64-v3", ("__AVX__", "__AVX2__", "__BMI__", "__BMI2__", "__F16C__", "__FMA__",
+                   "__LZCNT__", "__MOVBE__"), ("-march=x86-64-v3", "-mno-fma")),
+    ("x86-64-v2", ("__SSE3__", "__SSSE3__", "__SSE4_1__", "__SSE4_2__", "__POPCNT__"),
+     ("-march=x86-64-v2",)),
+)
+
+
+def isa_level(macros) -> str | None:
+    """The highest x86-64 level whose features are all among ``macros`` (the names the
+    compiler defines), each level including the ones below it; None below v2."""
+    have = set(macros)
+    best = None
+    for name, need, _ in reversed(_LEVELS):
+        if not have.issuperset(need):
+            break
+        best = name
+    return best
+
+
+def isa_flags() -> tuple[str, ...]:
+    """The flags of the highest level this CPU has (as ``-march=native`` shows it to the
+    compiler) that the compiler also builds with (``("-march=x86-64-v3", "-mno-fma")``,
+    say); () on other machines, without a compiler, or where the compiler knows no level
+    names (gcc < 11)."""
+    cc = compiler()
+    return () if cc is None else _isa_flags(cc)
+
+
+@functools.lru_cache(maxsize=4)
+def _isa_flags(cc: str) -> tuple[str, ...]:
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return ()
+    r = subprocess.run([cc, "-march=native", "-dM", "-E", "-x", "c", os.devnull],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        return ()
+    macros = {ln.split()[1] for ln in r.stdout.splitlines() if ln.startswith("#define ")}
+    level = isa_level(macros)
+    names = [name for name, _, _ in _LEVELS]
+    for _, _, flags in (_LEVELS[names.index(level):] if level else ()):
+        if _builds(cc, (*CFLAGS, *flags)):
+            return flags
+    return ()
+
+
+def _builds(cc: str, flags) -> bool:
+    """Whether ``cc`` with ``flags`` builds a tiny shared library."""
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "probe.c"
         src.write_text("#include <math.h>\ndouble swbc_probe(double x) { return sqrt(x); }\n")
-        r = subprocess.run([cc, *CFLAGS, "-shared", "-o", str(Path(tmp) / "probe.so"),
+        r = subprocess.run([cc, *flags, "-shared", "-o", str(Path(tmp) / "probe.so"),
                             str(src), "-lm"], capture_output=True, text=True)
     return r.returncode == 0
 
@@ -60,15 +126,15 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "safewbc-jax" / "c"
 
 
-def build(source: str, native: bool = False) -> tuple[Path, bool]:
-    """The shared library of ``source`` (``-march=native`` where ``native``). Returns (its
-    path, whether it was compiled now rather than found in the cache). Raises
-    RuntimeError with the compiler's message where the build fails, or where there is no
-    C compiler."""
+def build(source: str, native: bool = False, isa: bool = True) -> tuple[Path, bool]:
+    """The shared library of ``source``: built with ``CFLAGS`` and ``-march=native`` where
+    ``native``, else ``isa_flags()`` where ``isa``. Returns (its path, whether it was
+    compiled now rather than found in the cache). Raises RuntimeError with the compiler's
+    message where the build fails, or where there is no C compiler."""
     cc = compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set CC, or install cc, gcc or clang)")
-    flags = list(CFLAGS) + (["-march=native"] if native else [])
+    flags = list(CFLAGS) + (["-march=native"] if native else list(isa_flags()) if isa else [])
     key = hashlib.sha256("\0".join([source, cc, *flags]).encode()).hexdigest()[:24]
     out = cache_dir() / f"step_{key}.so"
     if out.exists():

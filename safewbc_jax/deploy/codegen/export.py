@@ -228,7 +228,7 @@ int main(void) {
 
 MAKEFILE = """# Builds the example and runs it: make (or make example; make clean)
 CC ?= cc
-CFLAGS ?= -O3 -std=c99 -Wall -Wextra
+CFLAGS ?= -O3 -std=c99 -ffp-contract=off -Wall -Wextra
 LDLIBS = -lm
 
 run: example
