@@ -103,6 +103,29 @@ def test_a_users_scenario_and_safe_set_in_c(stand):
         ctl.start(*stand, warm_up=False)
     assert (ctl_c.engine, ctl_x.engine) == ("c", "xla")
     _prepare_agrees(ctl_c, ctl_x, stand)
+    _no_fused_multiply_add(ctl_c.compiled.c_source)
+
+
+def _no_fused_multiply_add(source: str) -> None:
+    """The library the C engine built from ``source`` (``build.build``: the CPU's x86-64
+    level) has no fused multiply-add instruction. Where FMA is enabled, gcc 12 forms a few
+    in vectorised loops of the generated step despite ``-ffp-contract=off``, and they
+    change last bits against the baseline build (``build.py``): the level is built with
+    ``-mno-fma``. Checked on x86-64 with objdump; elsewhere there is nothing to check."""
+    import platform
+    import shutil
+
+    from safewbc_jax.deploy.codegen import build
+
+    objdump = shutil.which("objdump")
+    if objdump is None or platform.machine().lower() not in ("x86_64", "amd64"):
+        return
+    path, built = build.build(source)
+    assert not built                  # the controller's start built this very library
+    text = subprocess.run([objdump, "-d", str(path)], capture_output=True, text=True,
+                          check=True).stdout
+    fused = re.findall(r"\tv?fn?m(?:add|sub)\w*", text)
+    assert not fused, f"{len(fused)} fused multiply-adds in {path.name}: {fused[:4]}"
 
 
 def test_an_unsupported_primitive_in_a_users_safe_set_is_refused(stand):

@@ -13,8 +13,9 @@ Flags: ``CFLAGS`` and, on x86-64, the highest microarchitecture level of the x86
 is off (``-ffp-contract=off``, which ISO C mode also implies for gcc but not for clang; and
 no FMA instructions at all), and the generated C has no reductions the compiler may
 reorder, so every level computes the same bits as the baseline build
-(``tests/test_codegen.py``, ``tests/test_deploy_same_qp.py``); a cache shared by machines
-of different levels holds one library per level.
+(``tests/test_codegen.py``; ``tests/test_export_c.py`` finds no fused multiply-add in a
+step's library); a cache shared by machines of different levels holds one library per
+level.
 """
 
 from __future__ import annotations
