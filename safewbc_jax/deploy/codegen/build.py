@@ -61,11 +61,9 @@ def works() -> bool:
 
 # The compiler's macros for -march=native that each x86-64 psABI level requires (its
 # features as gcc and clang name them), and the flags it is built with. v3 is built without
-# FMA: gcc 12.2 at -O3 formed fused multiply-adds in vectorised loops of the generated step
-# despite -ffp-contract=off (the squat's metrics record differed from the baseline build's
-# in the last bit; with -mno-fma, every output of every step of five scenarios was equal).
-# v4 (AVX-512) is left out: AVX-512F brings its own fused multiply-add, and with
-# -march=x86-64-v4 -mno-fma the walk's step still differed in the last bit.
+# FMA: gcc 12 forms fused multiply-adds in vectorised loops of the generated step despite
+# -ffp-contract=off, which changes last bits. v4 (AVX-512) is left out: AVX-512F has fused
+# multiply-adds of its own, which -mno-fma does not remove (benchmarks/README.md).
 _LEVELS = (
     ("x86-64-v3", ("__AVX__", "__AVX2__", "__BMI__", "__BMI2__", "__F16C__", "__FMA__",
                    "__LZCNT__", "__MOVBE__"), ("-march=x86-64-v3", "-mno-fma")),
