@@ -111,14 +111,14 @@ def _no_fused_multiply_add(source: str) -> None:
     level) has no fused multiply-add instruction. Where FMA is enabled, gcc 12 forms a few
     in vectorised loops of the generated step despite ``-ffp-contract=off``, and they
     change last bits against the baseline build (``build.py``): the level is built with
-    ``-mno-fma``. Checked on x86-64 with objdump; elsewhere there is nothing to check."""
-    import platform
+    ``-mno-fma``. Checked with objdump where a level is used (``build.isa_flags``: x86-64
+    only); the baseline build has no FMA instructions to form."""
     import shutil
 
     from safewbc_jax.deploy.codegen import build
 
     objdump = shutil.which("objdump")
-    if objdump is None or platform.machine().lower() not in ("x86_64", "amd64"):
+    if objdump is None or not build.isa_flags():
         return
     path, built = build.build(source)
     assert not built                  # the controller's start built this very library
