@@ -10,7 +10,7 @@ largest parts first, with what they compute (their runtime routines and products
 
 x86-64 only (``__rdtsc``); the counter ticks at the CPU's base clock. Pin the process to
 one idle core (``taskset -c 0``). The instrumented build is the engine's source with the
-counters added, built as the engine builds it (``build.build``: ``-O3`` and the CPU's
+counters added, built as the engine builds it (``build.build``: ``opt_flags`` and the CPU's
 x86-64 level, cached by its own source's hash).
 """
 

@@ -17,7 +17,7 @@ The figures are deterministic for a jaxlib version and a CPU backend
         [--parts squat] [--c] [--json]
 
 ``--c``: also each part, and the whole deployed prepare, as the C engine generates and
-builds it (``deploy.codegen``: ``-O3`` and the CPU's level), timed per call with its code
+builds it (``deploy.codegen``: ``opt_flags`` and the CPU's level), timed per call with its code
 and data warm: the bare C function called through ctypes on fixed inputs, 300 calls to
 warm up, then the median of 5 runs of 2,000 calls. Pin the process to one idle core.
 """

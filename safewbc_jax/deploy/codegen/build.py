@@ -7,7 +7,10 @@ The build is cached in ``cache_dir()`` (``$SAFEWBC_C_CACHE``, else
 ``~/.cache/safewbc-jax/c``) under the SHA-256 of the source, the compiler and its flags, so a
 second start loads the library without compiling.
 
-Flags: ``CFLAGS`` and, on x86-64, the highest microarchitecture level of the x86-64 psABI
+Flags: ``CFLAGS``, the optimisation flags (``opt_flags``: with gcc, ``-O2`` with the loop
+vectoriser and complete peeling of short loops, which gives the generated step at least
+``-O3``'s speed from half its machine code and half its compile time; ``-O3`` with other
+compilers) and, on x86-64, the highest microarchitecture level of the x86-64 psABI
 (``-march=x86-64-v2``, or ``-v3`` without FMA) that this CPU has and the compiler takes
 (``isa_flags``): wider vectors (AVX2) for the generated loops. Floating-point contraction
 is off (``-ffp-contract=off``, which ISO C mode also implies for gcc but not for clang; and
@@ -35,7 +38,12 @@ import numpy as np
 
 from safewbc_jax.deploy.codegen.emit import CFunction
 
-CFLAGS = ("-O3", "-std=c99", "-fPIC", "-fno-math-errno", "-ffp-contract=off")
+CFLAGS = ("-std=c99", "-fPIC", "-fno-math-errno", "-ffp-contract=off")
+# What gcc's -O3 adds beyond these doubles the generated step's machine code and its
+# compile time and makes it no faster (benchmarks/README.md, "The C step's optimisation
+# flags"). No optimisation level changes a result here: none reassociates or contracts.
+OPT_GCC = ("-O2", "-ftree-vectorize", "-fvect-cost-model=dynamic", "-fpeel-loops")
+OPT_OTHER = ("-O3",)
 MAX_UNITS = 8
 MAX_OUT_SETS = 64     # output sets whose addresses a CCall keeps (one per lane of a lockstep)
 _CTYPES = {"double": ctypes.c_double, "float": ctypes.c_float, "int32_t": ctypes.c_int32,
@@ -56,7 +64,31 @@ def works() -> bool:
     one, once per process): a toolchain without its C library or linker fails here, not
     at the first generated step."""
     cc = compiler()
-    return cc is not None and _builds(cc, CFLAGS)
+    return cc is not None and _builds(cc, (*CFLAGS, *_opt_flags(cc)))
+
+
+def opt_flags() -> tuple[str, ...]:
+    """The optimisation flags of a build: ``OPT_GCC`` where the compiler is gcc and takes
+    them, else ``OPT_OTHER`` (clang, other compilers)."""
+    cc = compiler()
+    return OPT_OTHER if cc is None else _opt_flags(cc)
+
+
+@functools.lru_cache(maxsize=4)
+def _opt_flags(cc: str) -> tuple[str, ...]:
+    macros = _macros(cc, ())
+    gcc = "__GNUC__" in macros and "__clang__" not in macros
+    return OPT_GCC if gcc and _builds(cc, (*CFLAGS, *OPT_GCC)) else OPT_OTHER
+
+
+@functools.lru_cache(maxsize=8)
+def _macros(cc: str, flags: tuple) -> frozenset:
+    """The names of the macros ``cc`` predefines with ``flags`` (empty where it fails)."""
+    r = subprocess.run([cc, *flags, "-dM", "-E", "-x", "c", os.devnull],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        return frozenset()
+    return frozenset(ln.split()[1] for ln in r.stdout.splitlines() if ln.startswith("#define "))
 
 
 # The compiler's macros for -march=native that each x86-64 psABI level requires (its
@@ -97,11 +129,9 @@ def isa_flags() -> tuple[str, ...]:
 def _isa_flags(cc: str) -> tuple[str, ...]:
     if platform.machine().lower() not in ("x86_64", "amd64"):
         return ()
-    r = subprocess.run([cc, "-march=native", "-dM", "-E", "-x", "c", os.devnull],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
+    macros = _macros(cc, ("-march=native",))
+    if not macros:
         return ()
-    macros = {ln.split()[1] for ln in r.stdout.splitlines() if ln.startswith("#define ")}
     level = isa_level(macros)
     names = [name for name, _, _ in _LEVELS]
     for _, _, flags in (_LEVELS[names.index(level):] if level else ()):
@@ -125,15 +155,18 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "safewbc-jax" / "c"
 
 
-def build(source: str, native: bool = False, isa: bool = True) -> tuple[Path, bool]:
-    """The shared library of ``source``: built with ``CFLAGS`` and ``-march=native`` where
-    ``native``, else ``isa_flags()`` where ``isa``. Returns (its path, whether it was
+def build(source: str, native: bool = False, isa: bool = True,
+          opt: tuple[str, ...] | None = None) -> tuple[Path, bool]:
+    """The shared library of ``source``: built with ``CFLAGS``, ``opt`` (default
+    ``opt_flags()``) and ``-march=native`` where ``native``, else ``isa_flags()`` where
+    ``isa``. Returns (its path, whether it was
     compiled now rather than found in the cache). Raises RuntimeError with the compiler's
     message where the build fails, or where there is no C compiler."""
     cc = compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set CC, or install cc, gcc or clang)")
-    flags = list(CFLAGS) + (["-march=native"] if native else list(isa_flags()) if isa else [])
+    flags = [*CFLAGS, *(_opt_flags(cc) if opt is None else opt),
+             *(["-march=native"] if native else list(isa_flags()) if isa else [])]
     key = hashlib.sha256("\0".join([source, cc, *flags]).encode()).hexdigest()[:24]
     out = cache_dir() / f"step_{key}.so"
     if out.exists():
