@@ -32,6 +32,16 @@ def _spd(n, batch=()):
     return a @ np.swapaxes(a, -1, -2) + n * np.eye(n)
 
 
+def _profile_spd(n):
+    """A positive definite matrix whose rows start at random columns (a profile, as a
+    mass matrix factored leaves first has): L L' with L zero left of each row's start."""
+    first = [int(rng.integers(0, i + 1)) for i in range(n)]
+    low = np.tril(rng.standard_normal((n, n))) + n * np.eye(n)
+    for i, k in enumerate(first):
+        low[i, :k] = 0.0
+    return low @ low.T
+
+
 def _with_nan(x):
     x = np.array(x)
     x.flat[::5] = np.nan
@@ -115,7 +125,8 @@ CASES = {
                            lax.switch(i, [jnp.sin, jnp.cos, jnp.exp], x)),
              [_r(3), np.int32(2)]),
     # linear algebra, batched too
-    "cholesky": (lambda a: (jnp.linalg.cholesky(a), jnp.linalg.cholesky(-a)), [_spd(5, (2,))]),
+    "cholesky": (lambda a, p: (jnp.linalg.cholesky(a), jnp.linalg.cholesky(-a),
+                               jnp.linalg.cholesky(p)), [_spd(5, (2,)), _profile_spd(9)]),
     "lu_solve": (lambda a, b: (jnp.linalg.solve(a, b), lax.linalg.lu(a)[0], lax.linalg.lu(a)[2]),
                  [_r(5, 5) + 3 * np.eye(5), _r(5, 2)]),
     "triangular": (lambda a, b, c: tuple(

@@ -189,6 +189,7 @@ class Emitter:
         self.pooled: dict[str, str] = {}         # buffer name -> its ctype, for the pool
         self.refs: dict[str, int] = {}           # buffer name -> the arrays it holds
         self.direct: dict = {}                   # top-level var -> the output it is written to
+        self.dying: frozenset = frozenset()      # positions of the equation's inputs it may take
 
     # -- output
     def w(self, line: str) -> None:
@@ -293,6 +294,12 @@ class Emitter:
             ins = [read(v) for v in e.invars]
             outs = _fold(self, e, ins)
             if outs is None:
+                # inputs read for the last time here, from storage nothing else holds
+                self.dying = frozenset(
+                    p for p, v in enumerate(e.invars)
+                    if not isinstance(v, jcore.Literal) and last.get(v) == k and v in owned
+                    and v not in keep and e.invars.count(v) == 1
+                    and self.refs.get(env[v].name) == 1)
                 outs = RULES[e.primitive.name](self, e, ins)  # emit_function checked them
             for v, o in zip(e.outvars, outs):
                 env[v] = o
@@ -415,6 +422,18 @@ def rule(*names):
 def _out(em: Emitter, e, k: int = 0) -> Buf:
     direct = em.direct.get(e.outvars[k])
     return direct if direct is not None else em.new_buf(e.outvars[k].aval)
+
+
+def _out_in_place(em: Emitter, e, ins, pos: int) -> Buf:
+    """The result array of an equation that copies input ``pos`` and then updates it
+    (a triangular solve, a scatter): that input's own storage where the equation reads
+    it for the last time and nothing else holds it (``Emitter.dying``), so the copy is
+    not made; else ``_out``."""
+    x, aval = ins[pos], e.outvars[0].aval
+    if (pos in em.dying and e.outvars[0] not in em.direct and isinstance(x, Buf)
+            and x.dtype == np.dtype(aval.dtype) and x.size == math.prod(aval.shape)):
+        return em.alias(x, aval)
+    return _out(em, e)
 
 
 def _elementwise(em: Emitter, e, ins, expr: Callable[..., str]) -> list:
@@ -651,7 +670,7 @@ def _dynamic_slice(em, e, ins):
 
 @rule("dynamic_update_slice")
 def _dynamic_update_slice(em, e, ins):
-    out, x, upd = _out(em, e), ins[0], ins[1]
+    out, x, upd = _out_in_place(em, e, ins, 0), ins[0], ins[1]
     em.copy(out, x)
     starts = _clamped_starts(em, ins[2:], x.shape, upd.shape)
     em.w("{")
@@ -942,7 +961,7 @@ def _gather(em, e, ins):
 @rule("scatter", "scatter-add", "scatter_add", "scatter-mul", "scatter_mul", "scatter-min",
       "scatter-max")
 def _scatter(em, e, ins):
-    out, op, indices, upd = _out(em, e), ins[0], ins[1], ins[2]
+    out, op, indices, upd = _out_in_place(em, e, ins, 0), ins[0], ins[1], ins[2]
     dn = e.params["dimension_numbers"]
     if dn.operand_batching_dims:
         raise UnsupportedPrimitive(f"scatter with operand batching dims ({_where(e)})")
@@ -1172,8 +1191,10 @@ def _cholesky(em, e, ins):
     nb, m = _batched(em, x, 2)
     n = x.shape[-1]
     b = em.tmp("b")
-    em.w(f"for (int64_t {b} = 0; {b} < {nb}; ++{b}) swbc_cholesky({n}, {x.name} + {b}*{m}, "
-         f"{out.name} + {b}*{m});")
+    em.w(f"for (int64_t {b} = 0; {b} < {nb}; ++{b}) {{")
+    em.w(f"    int64_t pf_[{max(n, 1)}];")
+    em.w(f"    swbc_cholesky({n}, {x.name} + {b}*{m}, {out.name} + {b}*{m}, pf_);")
+    em.w("}")
     return [out]
 
 
@@ -1219,7 +1240,7 @@ def _piv_to_perm(em, e, ins):
 
 @rule("triangular_solve")
 def _triangular_solve(em, e, ins):
-    out, a, bmat = _out(em, e), ins[0], ins[1]
+    out, a, bmat = _out_in_place(em, e, ins, 1), ins[0], ins[1]
     p = e.params
     n = a.shape[-1]
     m, k = bmat.shape[-2], bmat.shape[-1]
@@ -1277,18 +1298,28 @@ def _sort(em, e, ins):
 
 RUNTIME = r"""
 /* Cholesky A = L L^T (n x n, row-major; the lower triangle of A is read, the upper part of
-   L is zero); a matrix that is not positive definite gives NaN everywhere, as XLA does. */
-static void swbc_cholesky(int64_t n, const double *a, double *l) {
+   L is zero); a matrix that is not positive definite gives NaN everywhere, as XLA does.
+   Row i of L is zero left of row i's first nonzero in A (its profile, p[i]; scratch of n
+   from the caller), so the products left of it are zeros and are skipped: the same sums
+   in the same order (a mass matrix factored leaves first has half its entries there). */
+static void swbc_cholesky(int64_t n, const double *a, double *l, int64_t *p) {
+    for (int64_t i = 0; i < n; ++i) {
+        int64_t k = 0;
+        while (k < i && a[i * n + k] == 0.0) ++k;
+        p[i] = k;
+    }
     for (int64_t i = 0; i < n * n; ++i) l[i] = 0.0;
     for (int64_t j = 0; j < n; ++j) {
         double d = a[j * n + j];
-        for (int64_t k = 0; k < j; ++k) d -= l[j * n + k] * l[j * n + k];
+        for (int64_t k = p[j]; k < j; ++k) d -= l[j * n + k] * l[j * n + k];
         if (!(d > 0.0)) { for (int64_t i = 0; i < n * n; ++i) l[i] = NAN; return; }
         d = sqrt(d);
         l[j * n + j] = d;
         for (int64_t i = j + 1; i < n; ++i) {
+            if (p[i] > j) continue;                /* left of row i's profile: zero */
             double s = a[i * n + j];
-            for (int64_t k = 0; k < j; ++k) s -= l[i * n + k] * l[j * n + k];
+            int64_t k0 = p[i] > p[j] ? p[i] : p[j];
+            for (int64_t k = k0; k < j; ++k) s -= l[i * n + k] * l[j * n + k];
             l[i * n + j] = s / d;
         }
     }
