@@ -140,8 +140,9 @@ def _isa_flags(cc: str) -> tuple[str, ...]:
     return ()
 
 
-def _builds(cc: str, flags) -> bool:
-    """Whether ``cc`` with ``flags`` builds a tiny shared library."""
+@functools.lru_cache(maxsize=16)
+def _builds(cc: str, flags: tuple) -> bool:
+    """Whether ``cc`` with ``flags`` builds a tiny shared library (once per process)."""
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "probe.c"
         src.write_text("#include <math.h>\ndouble swbc_probe(double x) { return sqrt(x); }\n")
