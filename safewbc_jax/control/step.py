@@ -394,31 +394,46 @@ def start_eta_fn(model, scenario, barrier, q):
 class StartCheck:
     """Theorem 1 (eq. 25) at start states (q, v_i) of ``scenario``, all at one
     configuration q. Each barrier's eta(x_0) (``start_eta_fn``) is vmapped over the start
-    velocities and thresholds, and jitted once per barrier where ``jit`` (False: eager,
-    for a single check that would not repay a compile)."""
+    velocities and thresholds (``etas``), or taken at one start state (``eta``), and
+    jitted once per barrier where ``jit`` (False: eager, for a single check that would not
+    repay a compile)."""
 
     def __init__(self, model, scenario, q, jit: bool = True):
         self.model, self.scenario, self.q = model, scenario, jnp.asarray(q)
         self._jit = bool(jit)
         self._eta: dict = {}
 
-    def etas(self, name: str, v, thresholds) -> np.ndarray:
-        """(N, r) eta(x_0) of barrier ``name`` at velocities v (N, nv) with thresholds (N,)."""
-        fn = self._eta.get(name)
+    def _fn(self, name: str, batched: bool):
+        fn = self._eta.get((name, batched))
         if fn is None:
             b = next(b for b in self.scenario.barriers if b.name == name)
-            fn = jax.vmap(start_eta_fn(self.model, self.scenario, b, self.q))
-            fn = self._eta[name] = jax.jit(fn) if self._jit else fn
-        return np.asarray(fn(jnp.asarray(v), jnp.asarray(thresholds)))
+            fn = start_eta_fn(self.model, self.scenario, b, self.q)
+            fn = jax.vmap(fn) if batched else fn
+            fn = self._eta[(name, batched)] = jax.jit(fn) if self._jit else fn
+        return fn
+
+    def etas(self, name: str, v, thresholds) -> np.ndarray:
+        """(N, r) eta(x_0) of barrier ``name`` at velocities v (N, nv) with thresholds (N,)."""
+        return np.asarray(self._fn(name, True)(jnp.asarray(v), jnp.asarray(thresholds)))
+
+    def eta(self, name: str, v, threshold) -> np.ndarray:
+        """(r,) eta(x_0) of barrier ``name`` at one velocity v (nv,) and threshold: not
+        vmapped (a vmap's trace of the barrier chain takes half as long again, which a
+        deployed controller's start pays)."""
+        return np.asarray(self._fn(name, False)(jnp.asarray(v), jnp.asarray(threshold)))
 
     def check(self, params, v, batched: bool = True) -> None:
         """Raise barriers.PoleError unless every barrier's poles are admissible at each
         start state. ``batched``: params with a leading axis N, v (N, nv), the error names
         the rollout; else one robot's params and v (nv,)."""
-        one = (lambda a: np.asarray(a)[None]) if not batched else (lambda a: a)  # noqa: E731
         for b in self.scenario.barriers:
-            check_start_poles(b.name, self.etas(b.name, one(v), one(params.threshold[b.name])),
-                              one(params.poles[b.name]), batched)
+            if batched:
+                etas = self.etas(b.name, v, params.threshold[b.name])
+                poles = params.poles[b.name]
+            else:
+                etas = self.eta(b.name, v, params.threshold[b.name])[None]
+                poles = np.asarray(params.poles[b.name])[None]
+            check_start_poles(b.name, etas, poles, batched)
 
 
 def check_start_poles(name: str, etas, poles, batched: bool) -> None:
