@@ -1495,6 +1495,34 @@ def _forward_slices(jaxpr):
     return jaxpr.replace(eqns=eqns, outvars=outs)
 
 
+def _transposes_into_dots(jaxpr):
+    """``jaxpr`` with each ``dot_general`` whose lhs is a matrix transposed by a top-level
+    ``transpose`` reading that matrix instead, its contracting dim swapped: the same
+    products summed in the same order (a quadratic form's N' P N, say), and the transposed
+    copy, where nothing else reads it, left to ``_dead_code_removed``. The lhs only: a
+    transposed rhs would put its free dim first, where the row form needs it last."""
+    import jax.extend.core as jcore
+
+    transposed: dict = {}       # a transpose's result -> the matrix it transposes
+    eqns = []
+    for e in jaxpr.eqns:
+        name = e.primitive.name
+        if (name == "transpose" and len(e.invars[0].aval.shape) == 2
+                and tuple(e.params["permutation"]) == (1, 0)):
+            transposed[e.outvars[0]] = e.invars[0]
+        elif (name == "dot_general" and not isinstance(e.invars[0], jcore.Literal)
+              and e.invars[0] in transposed):
+            (lc, rc), (lb, _) = e.params["dimension_numbers"]
+            if not lb and len(lc) == 1:
+                e = e.replace(invars=[transposed[e.invars[0]], *e.invars[1:]],
+                              params={**e.params, "dimension_numbers":
+                                      (((1 - lc[0],), tuple(rc)), ((), ()))})
+        eqns.append(e)
+    if all(a is b for a, b in zip(eqns, jaxpr.eqns)):
+        return jaxpr
+    return jaxpr.replace(eqns=eqns)
+
+
 def _dead_code_removed(jaxpr):
     """``jaxpr`` without the top-level equations whose results nothing reads (and that
     have no effects). Tracing keeps them (a value computed for a result that was then
@@ -1562,7 +1590,7 @@ def emit_function(name: str, closed) -> CFunction:
                const=True) for k, v in enumerate(jaxpr.invars)]
     consts = [em.const_buf(c) for c in closed.consts]
     # before the outputs' places are chosen
-    jaxpr = _dead_code_removed(_forward_slices(_deduplicate(jaxpr)))
+    jaxpr = _dead_code_removed(_transposes_into_dots(_forward_slices(_deduplicate(jaxpr))))
     em.direct = _direct_outputs(jaxpr)
     outs = em.run(jaxpr, ins, consts, dedupe=False)
     # an output that is an input (or a view of one) is copied out of it first: the caller
