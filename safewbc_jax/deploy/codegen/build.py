@@ -129,10 +129,7 @@ def isa_flags() -> tuple[str, ...]:
 def _isa_flags(cc: str) -> tuple[str, ...]:
     if platform.machine().lower() not in ("x86_64", "amd64"):
         return ()
-    macros = _macros(cc, ("-march=native",))
-    if not macros:
-        return ()
-    level = isa_level(macros)
+    level = isa_level(_macros(cc, ("-march=native",)))
     names = [name for name, _, _ in _LEVELS]
     for _, _, flags in (_LEVELS[names.index(level):] if level else ()):
         if _builds(cc, (*CFLAGS, *flags)):
@@ -160,14 +157,14 @@ def build(source: str, native: bool = False, isa: bool = True,
           opt: tuple[str, ...] | None = None) -> tuple[Path, bool]:
     """The shared library of ``source``: built with ``CFLAGS``, ``opt`` (default
     ``opt_flags()``) and ``-march=native`` where ``native``, else ``isa_flags()`` where
-    ``isa``. Returns (its path, whether it was
-    compiled now rather than found in the cache). Raises RuntimeError with the compiler's
-    message where the build fails, or where there is no C compiler."""
+    ``isa``. Returns (its path, whether it was compiled now rather than found in the
+    cache). Raises RuntimeError with the compiler's message where the build fails, or
+    where there is no C compiler."""
     cc = compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set CC, or install cc, gcc or clang)")
     flags = [*CFLAGS, *(_opt_flags(cc) if opt is None else opt),
-             *(["-march=native"] if native else list(isa_flags()) if isa else [])]
+             *(["-march=native"] if native else _isa_flags(cc) if isa else ())]
     key = hashlib.sha256("\0".join([source, cc, *flags]).encode()).hexdigest()[:24]
     out = cache_dir() / f"step_{key}.so"
     if out.exists():

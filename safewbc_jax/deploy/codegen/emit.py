@@ -429,10 +429,8 @@ def _out_in_place(em: Emitter, e, ins, pos: int) -> Buf:
     (a triangular solve, a scatter): that input's own storage where the equation reads
     it for the last time and nothing else holds it (``Emitter.dying``), so the copy is
     not made; else ``_out``."""
-    x, aval = ins[pos], e.outvars[0].aval
-    if (pos in em.dying and e.outvars[0] not in em.direct and isinstance(x, Buf)
-            and x.dtype == np.dtype(aval.dtype) and x.size == math.prod(aval.shape)):
-        return em.alias(x, aval)
+    if pos in em.dying and e.outvars[0] not in em.direct:
+        return em.alias(ins[pos], e.outvars[0].aval)
     return _out(em, e)
 
 
